@@ -1,0 +1,39 @@
+# Two commands do all set-up on a fresh machine:
+#   make demo   -- create/reuse .venv, install pinned dependencies, run the main job
+#   make test   -- create/reuse .venv, install pinned dependencies, run lint, types, tests and tutorials
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: venv demo test lint typecheck pytest bench clean
+
+$(STAMP): pyproject.toml constraints.txt
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	# torch first and alone: `torch==2.13.0` resolves to the local CPU build where one is provided.
+	$(PY) -m pip install --quiet torch==2.13.0
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev]"
+	touch $(STAMP)
+
+venv: $(STAMP)
+
+demo: venv
+	MPLBACKEND=Agg $(PY) -m torchcontact.demo --out runs/demo
+
+lint: venv
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
+
+typecheck: venv
+	$(PY) -m mypy
+
+pytest: venv
+	MPLBACKEND=Agg $(PY) -m pytest
+
+test: lint typecheck pytest
+
+bench: venv
+	$(PY) benchmarks/bench_contact.py
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache .mypy_cache .ruff_cache
