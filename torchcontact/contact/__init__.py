@@ -1,0 +1,46 @@
+"""Contact problems and their solvers.
+
+The Stewart–Trinkle contact step (:class:`ContactProblem`) is solved exactly by Lemke's method,
+by OSQP with staggered projections, by batched projected Gauss–Seidel, or, with the contact
+mode known, by one differentiable linear solve (:func:`solve_mode`).
+"""
+
+from torchcontact.contact._lcp import (
+    SEPARATED,
+    SLIDING,
+    STICKING,
+    contact_mode,
+    delassus,
+    is_consistent,
+    lcp_residual,
+)
+from torchcontact.contact._lemke import LemkeOutcome, LemkeResult, lemke, solve_lemke
+from torchcontact.contact._mode_solve import solve_mode
+from torchcontact.contact._pgs import project_capped_simplex, solve_pgs
+from torchcontact.contact._problem import ContactProblem
+from torchcontact.contact._qp import solve_qp
+from torchcontact.contact._solution import Solution, SolveStatus
+from torchcontact.contact._solve import Method, solve
+
+__all__ = [
+    "SEPARATED",
+    "SLIDING",
+    "STICKING",
+    "ContactProblem",
+    "LemkeOutcome",
+    "LemkeResult",
+    "Method",
+    "Solution",
+    "SolveStatus",
+    "contact_mode",
+    "delassus",
+    "is_consistent",
+    "lcp_residual",
+    "lemke",
+    "project_capped_simplex",
+    "solve",
+    "solve_lemke",
+    "solve_mode",
+    "solve_pgs",
+    "solve_qp",
+]

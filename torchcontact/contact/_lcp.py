@@ -1,0 +1,186 @@
+"""The Stewart–Trinkle LCP of a contact problem: assembly, residual, mode and consistency."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchcontact.contact._problem import ContactProblem
+from torchcontact.contact._solution import Solution
+
+#: Mode of a slot that carries no impulse.
+SEPARATED = 0
+#: Mode of a slot whose contact point does not slide.
+STICKING = 1
+#: Mode ``SLIDING + d``: the slot slides with its friction impulse along direction ``d``.
+SLIDING = 2
+
+
+def default_tolerance(dtype: torch.dtype) -> float:
+    """Absolute tolerance used by the residual tests of solvers for ``dtype``."""
+    return 1e-9 if dtype == torch.float64 else 1e-4
+
+
+def contact_jacobian(problem: ContactProblem) -> Tensor:
+    """Stack normal and friction rows into ``J (*B, K + K·D, n)``: ``[Jn; Jt]``."""
+    Jt_flat = problem.Jt.flatten(-3, -2)
+    return torch.cat([problem.Jn, Jt_flat], dim=-2)
+
+
+def delassus(problem: ContactProblem) -> tuple[Tensor, Tensor]:
+    """Delassus operator of the stacked rows and the mobility of each row.
+
+    Returns:
+        ``W (*B, K + K·D, K + K·D) = J M⁻¹ Jᵀ`` and ``M⁻¹ Jᵀ (*B, n, K + K·D)``, computed by
+        Cholesky solves.
+    """
+    J = contact_jacobian(problem)
+    L = torch.linalg.cholesky(problem.M)
+    Minv_JT = torch.cholesky_solve(J.transpose(-1, -2), L)
+    return J @ Minv_JT, Minv_JT
+
+
+def free_constraint_velocity(problem: ContactProblem) -> Tensor:
+    """``(*B, K + K·D)`` constraint velocities at ``v_free``: ``J v_free + [bn + φ/h; bt]``.
+
+    With ``W`` from :func:`delassus` this is the LCP data: the constraint velocities at the end
+    of the step are ``W p + q`` for stacked impulses ``p = [pn; pt]``.
+    """
+    J = contact_jacobian(problem)
+    bias = torch.cat(
+        [problem.b_normal + problem.phi / problem.h, problem.b_tangent.flatten(-2, -1)], dim=-1
+    )
+    return (J @ problem.v_free().unsqueeze(-1)).squeeze(-1) + bias
+
+
+def velocity_terms(problem: ContactProblem, v_next: Tensor) -> tuple[Tensor, Tensor]:
+    """Constraint velocities at ``v_next``.
+
+    Args:
+        problem: the contact problem.
+        v_next: ``(*B, n)`` generalized velocity at the end of the step.
+
+    Returns:
+        ``gap_rate (*B, K) = Jn v⁺ + bn + φ/h`` and ``slip (*B, K, D) = Jt v⁺ + bt``.
+    """
+    gap_rate = (problem.Jn @ v_next.unsqueeze(-1)).squeeze(-1)
+    gap_rate = gap_rate + problem.b_normal + problem.phi / problem.h
+    slip = (problem.Jt @ v_next.unsqueeze(-1).unsqueeze(-3)).squeeze(-1) + problem.b_tangent
+    return gap_rate, slip
+
+
+def lcp_residual(problem: ContactProblem, *, v_next: Tensor, pn: Tensor, pt: Tensor) -> Tensor:
+    """Natural-map residual ``max |min(z, w)|`` of the Stewart–Trinkle LCP.
+
+    The sliding speed of each contact is taken as the least value that satisfies the friction
+    rows, ``σ = max(0, −min_d (Jt_d v⁺ + bt_d))``, so the residual measures a candidate
+    ``(v⁺, pn, pt)`` alone. Padding slots contribute ``|pn|`` and ``|pt|`` (they must be zero).
+    Velocities and impulses are mixed in one number, as in the LCP itself.
+
+    Args:
+        problem: the contact problem.
+        v_next: ``(*B, n)`` end-of-step velocity, assumed to satisfy the Newton–Euler row.
+        pn: ``(*B, K)`` normal impulses.
+        pt: ``(*B, K, D)`` friction impulses.
+
+    Returns:
+        ``(*B,)`` residual, zero exactly at a solution.
+    """
+    gap_rate, slip = velocity_terms(problem, v_next)
+    sigma = (-slip.amin(dim=-1)).clamp(min=0.0)
+    normal = torch.minimum(pn, gap_rate).abs()
+    friction = torch.minimum(pt, slip + sigma.unsqueeze(-1)).abs().amax(dim=-1)
+    cone = torch.minimum(sigma, problem.mu * pn - pt.sum(dim=-1)).abs()
+    per_slot = torch.stack([normal, friction, cone], dim=-1).amax(dim=-1)
+    padding = torch.maximum(pn.abs(), pt.abs().amax(dim=-1))
+    per_slot = torch.where(problem.slot_mask, per_slot, padding)
+    return per_slot.amax(dim=-1) if per_slot.shape[-1] else per_slot.sum(dim=-1)
+
+
+def _scales(problem: ContactProblem, pn: Tensor) -> tuple[Tensor, Tensor]:
+    """Velocity and impulse scales ``(*B, 1)`` that turn absolute tolerances into relative ones."""
+    velocity = torch.cat(
+        [problem.v_free().abs(), (problem.phi / problem.h).abs(), problem.b_normal.abs()], dim=-1
+    ).amax(dim=-1, keepdim=True)
+    impulse = pn.abs().amax(dim=-1, keepdim=True) if pn.shape[-1] else pn.sum(-1, keepdim=True)
+    return 1.0 + velocity, 1.0 + impulse
+
+
+def contact_mode(
+    problem: ContactProblem,
+    *,
+    v_next: Tensor,
+    pn: Tensor,
+    atol: float | None = None,
+) -> Tensor:
+    """Read the contact mode of each slot off a solution.
+
+    A slot is separated when its normal impulse is zero (within tolerance), sticking when it
+    carries an impulse and its contact point does not slide, and otherwise sliding along the
+    friction direction most opposed to its slip (the direction that carries its friction).
+
+    Args:
+        problem: the contact problem.
+        v_next: ``(*B, n)`` end-of-step velocity.
+        pn: ``(*B, K)`` normal impulses.
+        atol: relative tolerance; default :func:`default_tolerance` of the dtype times 10.
+
+    Returns:
+        ``(*B, K)`` long modes (0 separated, 1 sticking, ``2 + d`` sliding along ``d``).
+    """
+    tol = 10 * default_tolerance(problem.dtype) if atol is None else atol
+    velocity_scale, impulse_scale = _scales(problem, pn)
+    _, slip = velocity_terms(problem, v_next)
+    active = problem.slot_mask & (pn > tol * impulse_scale)
+    sticking = slip.abs().amax(dim=-1) <= tol * velocity_scale
+    sliding_mode = SLIDING + slip.argmin(dim=-1)
+    mode = torch.where(sticking, torch.full_like(sliding_mode, STICKING), sliding_mode)
+    return torch.where(active, mode, torch.zeros_like(mode))
+
+
+def is_consistent(
+    problem: ContactProblem, solution: Solution, *, atol: float | None = None
+) -> Tensor:
+    """Check that a solution's impulses and velocities agree with its own contact modes.
+
+    For every real slot: impulses are non-negative; a separated slot carries no impulse and
+    does not penetrate (gap rate ≥ 0); an active slot has zero gap rate; a sticking slot has
+    zero slip and its friction inside the polyhedral cone (Σ_d pt_d ≤ μ pn); a slot sliding
+    along ``d`` has Σ_d pt_d = μ pn carried by direction ``d``, and slips against ``d``
+    (``Jt_d v⁺ + bt_d ≤ 0``) at least as fast as along any other direction. Padding slots
+    carry no impulse. Tolerances are relative to the problem's velocity and impulse scales.
+
+    Args:
+        problem: the contact problem.
+        solution: the solution to check (its ``v_next``, ``pn``, ``pt`` and ``mode``).
+        atol: relative tolerance; default 10 × :func:`default_tolerance` of the dtype.
+
+    Returns:
+        ``(*B,)`` bool, ``True`` where the solution is consistent with its modes.
+    """
+    v_next, pn, pt, mode = solution.v_next, solution.pn, solution.pt, solution.mode
+    tol = 10 * default_tolerance(problem.dtype) if atol is None else atol
+    velocity_scale, impulse_scale = _scales(problem, pn)
+    v_tol, p_tol = tol * velocity_scale, tol * impulse_scale
+    gap_rate, slip = velocity_terms(problem, v_next)
+    friction_total = pt.sum(dim=-1)
+    direction = (mode - SLIDING).clamp(min=0)
+    slip_d = slip.gather(-1, direction.unsqueeze(-1)).squeeze(-1)
+    pt_d = pt.gather(-1, direction.unsqueeze(-1)).squeeze(-1)
+
+    nonnegative = (pn >= -p_tol) & (pt >= -p_tol).all(dim=-1)
+    no_impulse = (pn.abs() <= p_tol) & (pt.abs() <= p_tol).all(dim=-1)
+    separated_ok = no_impulse & (gap_rate >= -v_tol)
+    closed = gap_rate.abs() <= v_tol
+    sticking_ok = closed & (slip.abs() <= v_tol).all(dim=-1)
+    sticking_ok = sticking_ok & (friction_total <= problem.mu * pn + p_tol)
+    sliding_ok = closed & ((friction_total - problem.mu * pn).abs() <= p_tol)
+    sliding_ok = sliding_ok & ((pt_d - friction_total).abs() <= p_tol)
+    sliding_ok = sliding_ok & (slip_d <= v_tol) & (slip_d <= slip.amin(dim=-1) + v_tol)
+    per_slot = torch.where(
+        mode == SEPARATED,
+        separated_ok,
+        torch.where(mode == STICKING, sticking_ok, sliding_ok),
+    )
+    per_slot = torch.where(problem.slot_mask, per_slot & nonnegative, no_impulse)
+    return per_slot.all(dim=-1)

@@ -1,0 +1,227 @@
+"""Lemke's complementary pivoting with lexicographic degeneracy resolution (the exact reference)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+from torchcontact.contact._lcp import (
+    contact_mode,
+    default_tolerance,
+    delassus,
+    free_constraint_velocity,
+    lcp_residual,
+)
+from torchcontact.contact._problem import ContactProblem
+from torchcontact.contact._solution import Solution, SolveStatus
+
+FloatArray = NDArray[np.float64]
+
+
+class LemkeOutcome(Enum):
+    """How a run of Lemke's algorithm ended."""
+
+    SOLVED = "solved"
+    RAY = "secondary ray"
+    MAX_PIVOTS = "pivot limit"
+
+
+@dataclass(frozen=True)
+class LemkeResult:
+    """Result of :func:`lemke` on one LCP ``w = A z + q, 0 ≤ z ⊥ w ≥ 0``.
+
+    Attributes:
+        z: ``(N,)`` solution (meaningful only when ``outcome`` is ``SOLVED``).
+        w: ``(N,)`` ``A z + q``.
+        outcome: how the pivoting ended.
+        pivots: number of pivots taken.
+    """
+
+    z: FloatArray
+    w: FloatArray
+    outcome: LemkeOutcome
+    pivots: int
+
+
+def lemke(A: FloatArray, q: FloatArray, *, max_pivots: int | None = None) -> LemkeResult:
+    """Solve the LCP ``w = A z + q, z ≥ 0, w ≥ 0, zᵀw = 0`` by Lemke's method.
+
+    The covering vector is ``e = 1``. Ties in the ratio test are broken lexicographically,
+    which is equivalent to perturbing ``q`` by ``(ε, ε², …)``: the basis never cycles and the
+    method ends on a solution whenever ``A`` is copositive-plus and the LCP is feasible, even
+    for degenerate problems (a box resting on two corners) where a plain ratio test can stop
+    on a secondary ray. The final basis is re-solved against the original data, so the answer
+    carries no accumulated pivoting error.
+
+    Args:
+        A: ``(N, N)`` LCP matrix.
+        q: ``(N,)`` LCP vector.
+        max_pivots: pivot limit; default ``50 N + 100``.
+
+    Returns:
+        The :class:`LemkeResult`.
+
+    References:
+        C. E. Lemke, "Bimatrix equilibrium points and mathematical programming",
+        Management Science 11(7), 1965. K. G. Murty, *Linear Complementarity, Linear and
+        Nonlinear Programming*, 1988, ch. 2 (lexico-minimum ratio rule).
+    """
+    N = q.shape[0]
+    if q.size == 0 or q.min() >= 0.0:
+        z = np.zeros(N)
+        return LemkeResult(z=z, w=q.copy(), outcome=LemkeOutcome.SOLVED, pivots=0)
+    limit = 50 * N + 100 if max_pivots is None else max_pivots
+    # Tableau columns: w (N) | z (N) | z0 (1). The w-columns hold the basis inverse, which
+    # supplies the lexicographic tie-breaking rows.
+    original = np.hstack([np.eye(N), -A, -np.ones((N, 1))])
+    tableau = original.copy()
+    rhs = q.astype(np.float64).copy()
+    basis = np.arange(N)
+    z0 = 2 * N
+    scale = 1.0 + np.abs(A).max() + np.abs(q).max()
+    pivot_tol = 1e-12 * scale
+
+    entering = z0
+    rows = np.arange(N)
+    column = np.ones(N)  # first step: x_B = rhs + e z0, leave at the lexico-most-negative row
+    pivots = 0
+    while pivots < limit:
+        if pivots > 0:
+            column = tableau[:, entering]
+            rows = np.flatnonzero(column > pivot_tol)
+            if rows.size == 0:
+                return _finish(original, q, A, basis, LemkeOutcome.RAY, pivots)
+        ratios = np.column_stack([rhs[rows], tableau[rows, :N]]) / column[rows, None]
+        row = _lexicographic_argmin(ratios, rows, basis, z0, scale)
+        leaving = basis[row]
+        _pivot(tableau, rhs, row, entering)
+        basis[row] = entering
+        pivots += 1
+        if leaving == z0:
+            return _finish(original, q, A, basis, LemkeOutcome.SOLVED, pivots)
+        entering = leaving + N if leaving < N else leaving - N
+    return _finish(original, q, A, basis, LemkeOutcome.MAX_PIVOTS, pivots)
+
+
+def _lexicographic_argmin(
+    ratios: FloatArray, rows: NDArray[np.int_], basis: NDArray[np.int_], z0: int, scale: float
+) -> int:
+    """Row of the lexicographically smallest ratio row, preferring ``z0`` on a first-column tie."""
+    candidates = np.arange(rows.size)
+    tol = 1e-11 * scale
+    first = ratios[:, 0]
+    candidates = candidates[first <= first.min() + tol]
+    z0_rows = candidates[basis[rows[candidates]] == z0]
+    if z0_rows.size:
+        return int(rows[z0_rows[0]])
+    for column in range(1, ratios.shape[1]):
+        if candidates.size == 1:
+            break
+        values = ratios[candidates, column]
+        candidates = candidates[values <= values.min() + tol]
+    return int(rows[candidates[0]])
+
+
+def _pivot(tableau: FloatArray, rhs: FloatArray, row: int, column: int) -> None:
+    """Gauss–Jordan pivot of the tableau on ``(row, column)``, in place."""
+    pivot = tableau[row, column]
+    tableau[row] /= pivot
+    rhs[row] /= pivot
+    factors = tableau[:, column].copy()
+    factors[row] = 0.0
+    tableau -= np.outer(factors, tableau[row])
+    rhs -= factors * rhs[row]
+
+
+def _finish(
+    original: FloatArray,
+    q: FloatArray,
+    A: FloatArray,
+    basis: NDArray[np.int_],
+    outcome: LemkeOutcome,
+    pivots: int,
+) -> LemkeResult:
+    """Re-solve the final basis against the original tableau and read off ``z``."""
+    N = q.shape[0]
+    try:
+        values = np.linalg.solve(original[:, basis], q)
+    except np.linalg.LinAlgError:
+        outcome = LemkeOutcome.RAY if outcome is LemkeOutcome.SOLVED else outcome
+        values = np.zeros(N)
+    z = np.zeros(N)
+    is_z = (basis >= N) & (basis < 2 * N)
+    z[basis[is_z] - N] = values[is_z]
+    return LemkeResult(z=z, w=A @ z + q, outcome=outcome, pivots=pivots)
+
+
+def solve_lemke(problem: ContactProblem, *, max_pivots: int | None = None) -> Solution:
+    """Solve every problem of the batch exactly with :func:`lemke` (float64, one by one).
+
+    The Stewart–Trinkle LCP in ``z = [pn; pt; σ]`` over the real (unmasked) slots is
+
+        ``A = [[Wnn, Wnt, 0], [Wtn, Wtt, E], [diag μ, −Eᵀ, 0]]``,
+        ``q = [Jn v_free + bn + φ/h; Jt v_free + bt; 0]``
+
+    with ``W = J M⁻¹ Jᵀ``. Problems are converted to float64 for the pivoting and the answer
+    is returned in the problem's dtype.
+
+    Args:
+        problem: the contact problem, batch ``*B``.
+        max_pivots: pivot limit per problem (default ``50 N + 100``).
+
+    Returns:
+        The :class:`Solution`; ``status.converged`` is ``False`` where Lemke stopped on a ray or
+        the pivot limit, or where the result's residual exceeds the float64 tolerance.
+    """
+    batch, K, D = problem.batch_shape, problem.num_slots, problem.num_directions
+    flat = problem.to(dtype=torch.float64).flatten()
+    with torch.no_grad():
+        W, Minv_JT = delassus(flat)
+        v_free = flat.v_free()
+        q_contact = free_constraint_velocity(flat)
+    W_np, q_np = W.numpy(), q_contact.numpy()
+    mask_np, mu_np = flat.slot_mask.numpy(), flat.mu.numpy()
+    count = W_np.shape[0]
+    impulses = np.zeros((count, K + K * D))
+    solved = np.zeros(count, dtype=bool)
+    pivots = np.zeros(count, dtype=np.int64)
+    for index in range(count):
+        slots = np.flatnonzero(mask_np[index])
+        rows = np.concatenate([slots, K + (slots[:, None] * D + np.arange(D)).ravel()])
+        A, q = _stewart_trinkle(W_np[index][np.ix_(rows, rows)], q_np[index][rows],
+                                mu_np[index][slots], D)
+        result = lemke(A, q, max_pivots=max_pivots)
+        impulses[index, rows] = result.z[: rows.size]
+        solved[index] = result.outcome is LemkeOutcome.SOLVED
+        pivots[index] = result.pivots
+
+    p = torch.from_numpy(impulses)
+    v_next = v_free + (Minv_JT @ p.unsqueeze(-1)).squeeze(-1)
+    pn, pt = p[:, :K], p[:, K:].unflatten(-1, (K, D))
+    residual = lcp_residual(flat, v_next=v_next, pn=pn, pt=pt)
+    scale = 1.0 + q_contact.abs().amax(dim=-1) + p.abs().amax(dim=-1) if K else 1.0 + residual
+    converged = torch.from_numpy(solved) & (residual <= default_tolerance(torch.float64) * scale)
+    mode = contact_mode(flat, v_next=v_next, pn=pn)
+    status = SolveStatus(converged=converged, residual=residual, iterations=torch.from_numpy(pivots))
+    solution = Solution(v_next=v_next, pn=pn, pt=pt, mode=mode, status=status)
+    return solution.restore_batch(batch, dtype=problem.dtype, device=problem.device)
+
+
+def _stewart_trinkle(W: FloatArray, q_contact: FloatArray, mu: FloatArray, D: int) -> tuple[
+    FloatArray, FloatArray
+]:
+    """Assemble the Stewart–Trinkle LCP ``(A, q)`` of size ``K + K·D + K`` from ``W`` and ``q``."""
+    K = mu.shape[0]
+    E = np.kron(np.eye(K), np.ones((D, 1)))
+    size = K + K * D + K
+    A = np.zeros((size, size))
+    A[: K + K * D, : K + K * D] = W
+    A[K : K + K * D, K + K * D :] = E
+    A[K + K * D :, :K] = np.diag(mu)
+    A[K + K * D :, K : K + K * D] = -E.T
+    q = np.concatenate([q_contact, np.zeros(K)])
+    return A, q

@@ -1,0 +1,199 @@
+"""Mode-decoupled contact dynamics: one batched, differentiable linear solve per problem."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchcontact.contact._lcp import (
+    SLIDING,
+    STICKING,
+    default_tolerance,
+    lcp_residual,
+)
+from torchcontact.contact._problem import ContactProblem
+from torchcontact.contact._solution import Solution, SolveStatus
+
+#: Iterated-Tikhonov refinements of the constraint solve (see :func:`solve_mode`).
+_REFINEMENTS = 4
+
+
+def validate_mode(problem: ContactProblem, mode: Tensor) -> Tensor:
+    """Check a mode tensor against a problem and broadcast it to ``(*B, K)``.
+
+    Raises:
+        ValueError: naming ``mode`` if it is not an integer tensor, does not broadcast to the
+            problem's ``(*B, K)`` or holds values outside ``[0, 2 + D)``.
+    """
+    if not isinstance(mode, Tensor) or mode.is_floating_point() or mode.dtype == torch.bool:
+        raise ValueError("mode must be an integer tensor of shape (*B, K)")
+    shape = (*problem.batch_shape, problem.num_slots)
+    try:
+        mode = mode.to(device=problem.device, dtype=torch.long).expand(shape)
+    except RuntimeError as error:
+        raise ValueError(f"mode has shape {tuple(mode.shape)}; expected {shape}") from error
+    if mode.numel() and (int(mode.min()) < 0 or int(mode.max()) >= SLIDING + problem.num_directions):
+        raise ValueError(f"mode values must lie in [0, {SLIDING + problem.num_directions})")
+    return mode
+
+
+def solve_mode(problem: ContactProblem, mode: Tensor) -> Solution:
+    r"""Solve the contact step with every slot's contact mode fixed.
+
+    With the mode known, the complementarity conditions become equalities and the step is one
+    linear system per problem. For slot ``k``:
+
+    * separated (0): ``pn_k = 0`` and ``pt_k = 0``;
+    * sticking (1): ``Jn_k v⁺ + bn_k + φ_k/h = 0`` and ``Jt_{k,j} v⁺ + bt_{k,j} = 0`` for a
+      basis ``j`` of the tangent space (direction 0; directions 0 and 1 when spatial), with
+      free tangential impulse ``λ_k`` along that basis;
+    * sliding along ``d`` (``2 + d``): ``Jn_k v⁺ + bn_k + φ_k/h = 0`` and the friction
+      impulse is ``μ_k pn_k`` along direction ``d``.
+
+    Eliminating ``v⁺ = v_free + M⁻¹ Gᵀ x`` (``x`` the unknown impulses, ``G`` the rows along
+    which they act: ``Jn_k + μ_k Jt_{k,d}`` for sliding slots) leaves the Schur system
+    ``C M⁻¹ Gᵀ x = r`` on the active rows ``C``. Redundant contacts (a box resting on
+    two corners with identical friction rows, four coplanar corners in 3-D) make it singular
+    but consistent: the end velocity is unique while the impulse split is not. The system is
+    solved by iterated Tikhonov regularisation (``(A + εI) x_{i+1} = b + ε x_i``, ``x_0 = 0``,
+    ε = √eps·max|diag A|), which converges to the minimum-norm impulses when singular and
+    to the exact solution, to machine precision, when not. Every operation is differentiable.
+
+    Sticking friction impulses are reported as non-negative components along the two
+    friction directions that bracket the tangential impulse.
+
+    Args:
+        problem: the contact problem, batch ``*B``.
+        mode: ``(*B, K)`` integer modes (broadcastable); padding slots are treated as
+            separated whatever their mode.
+
+    Returns:
+        The :class:`Solution`. Its ``status.converged`` says the linear system was solved
+        (finite, equality residual within tolerance); whether the result is physically
+        consistent with the mode is :func:`is_consistent`'s answer, and
+        ``status.residual`` is the LCP residual, zero only when the mode was the right one.
+    """
+    mode = validate_mode(problem, mode)
+    mask = problem.slot_mask
+    mode = torch.where(mask, mode, torch.zeros_like(mode))
+    batch, n = problem.batch_shape, problem.num_dofs
+    K, D, r = problem.num_slots, problem.num_directions, problem.num_tangents
+    Jn, Jt, mu = problem.Jn, problem.Jt, problem.mu
+
+    active = mode >= STICKING
+    sticking = mode == STICKING
+    sliding = mode >= SLIDING
+    direction = (mode - SLIDING).clamp(min=0)
+    Jt_d = Jt.gather(-2, direction[..., None, None].expand(*batch, K, 1, n)).squeeze(-2)
+    slide_mu = torch.where(sliding, mu, torch.zeros_like(mu))
+    G_normal = Jn + slide_mu.unsqueeze(-1) * Jt_d
+    J_basis = Jt[..., :r, :].flatten(-3, -2)
+    C = torch.cat([Jn, J_basis], dim=-2)
+    G = torch.cat([G_normal, J_basis], dim=-2)
+    rows_active = torch.cat([active, sticking.repeat_interleave(r, dim=-1)], dim=-1)
+
+    L = torch.linalg.cholesky(problem.M)
+    v_free = problem.v + problem.h * torch.cholesky_solve(problem.f.unsqueeze(-1), L).squeeze(-1)
+    Minv_GT = torch.cholesky_solve(G.transpose(-1, -2), L)
+    target = torch.cat(
+        [
+            -(problem.b_normal + problem.phi / problem.h),
+            -problem.b_tangent[..., :r].flatten(-2, -1),
+        ],
+        dim=-1,
+    )
+    rhs = target - (C @ v_free.unsqueeze(-1)).squeeze(-1)
+    both = rows_active.unsqueeze(-1) & rows_active.unsqueeze(-2)
+    A = torch.where(both, C @ Minv_GT, torch.zeros((), dtype=problem.dtype))
+    A = A + torch.diag_embed((~rows_active).to(problem.dtype))
+    b = torch.where(rows_active, rhs, torch.zeros((), dtype=problem.dtype))
+    x = _iterated_tikhonov(A, b)
+
+    v_next = v_free + (Minv_GT @ x.unsqueeze(-1)).squeeze(-1)
+    pn = x[..., :K]
+    tangential = x[..., K:].unflatten(-1, (K, r))
+    pt_slide = torch.nn.functional.one_hot(direction, D).to(problem.dtype)
+    pt_slide = pt_slide * (slide_mu * pn).unsqueeze(-1)
+    pt_stick = _bracket_decomposition(Jt, tangential, sticking)
+    pt = torch.where(sticking.unsqueeze(-1), pt_stick, pt_slide)
+
+    equality_error = ((A @ x.unsqueeze(-1)).squeeze(-1) - b).abs().amax(dim=-1)
+    scale = 1.0 + b.abs().amax(dim=-1) + (A.abs().amax(dim=(-1, -2)) * x.abs().amax(dim=-1))
+    finite = torch.isfinite(v_next).all(dim=-1) & torch.isfinite(pt).all(dim=(-1, -2))
+    tolerance = default_tolerance(problem.dtype)
+    converged = finite & (equality_error <= tolerance * scale)
+    residual = lcp_residual(problem, v_next=v_next, pn=pn, pt=pt)
+    status = SolveStatus(
+        converged=converged.detach(),
+        residual=residual.detach(),
+        iterations=torch.ones(batch, dtype=torch.long, device=problem.device),
+    )
+    return Solution(v_next=v_next, pn=pn, pt=pt, mode=mode, status=status)
+
+
+def _iterated_tikhonov(A: Tensor, b: Tensor) -> Tensor:
+    """Solve ``A x = b`` (batched, possibly singular but consistent) by iterated Tikhonov.
+
+    Args:
+        A: ``(*B, m, m)`` system matrices.
+        b: ``(*B, m)`` right-hand sides.
+
+    Returns:
+        ``(*B, m)``: the solution when ``A`` is nonsingular; the minimum-norm solution
+        (up to the regularisation's geometric convergence) when singular and consistent.
+    """
+    if A.shape[-1] == 0:
+        return b
+    eps = torch.finfo(A.dtype).eps ** 0.5
+    diagonal_scale = A.diagonal(dim1=-2, dim2=-1).abs().amax(dim=-1, keepdim=True)
+    shift = (eps * diagonal_scale).unsqueeze(-1)
+    identity = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+    LU, pivots = torch.linalg.lu_factor(A + shift * identity)
+    x = torch.zeros_like(b).unsqueeze(-1)
+    for _ in range(_REFINEMENTS):
+        x = torch.linalg.lu_solve(LU, pivots, b.unsqueeze(-1) + shift * x)
+    return x.squeeze(-1)
+
+
+def _bracket_decomposition(Jt: Tensor, tangential: Tensor, sticking: Tensor) -> Tensor:
+    """Write tangential impulses as non-negative friction-direction components.
+
+    Args:
+        Jt: ``(*B, K, D, n)`` friction-direction rows.
+        tangential: ``(*B, K, r)`` impulse coordinates along the tangent basis (direction 0,
+            or directions 0 and 1 when spatial).
+        sticking: ``(*B, K)`` bool; other slots return zeros.
+
+    Returns:
+        ``(*B, K, D)`` components ``pt ≥ 0`` with ``Σ_d pt_d Jt_d = Σ_j λ_j Jt_j``, using the
+        two adjacent directions whose cone contains the impulse (planar: ``+t`` or ``-t``).
+    """
+    D = Jt.shape[-2]
+    zero = torch.zeros((), dtype=Jt.dtype, device=Jt.device)
+    if D == 2:
+        lam = tangential[..., 0]
+        pt = torch.stack([lam.clamp(min=0.0), (-lam).clamp(min=0.0)], dim=-1)
+        return torch.where(sticking.unsqueeze(-1), pt, zero)
+    basis = Jt[..., :2, :]
+    gram = basis @ basis.transpose(-1, -2)
+    identity = torch.eye(2, dtype=Jt.dtype, device=Jt.device)
+    gram = torch.where(sticking[..., None, None], gram, identity)
+    coords = torch.linalg.solve(gram, basis @ Jt.transpose(-1, -2))  # (*B, K, 2, D)
+    c_this = coords
+    c_next = coords.roll(-1, dims=-1)
+    lam = tangential.unsqueeze(-1)  # (*B, K, 2, 1)
+
+    def cross(a: Tensor, b: Tensor) -> Tensor:
+        return a[..., 0, :] * b[..., 1, :] - a[..., 1, :] * b[..., 0, :]
+
+    det = cross(c_this, c_next)
+    det = torch.where(det.abs() > 0, det, torch.ones_like(det))
+    alpha = cross(lam, c_next) / det
+    beta = cross(c_this, lam) / det
+    sector = torch.minimum(alpha, beta).argmax(dim=-1, keepdim=True)
+    alpha = alpha.gather(-1, sector).clamp(min=0.0)
+    beta = beta.gather(-1, sector).clamp(min=0.0)
+    pt = torch.zeros_like(Jt[..., 0])
+    pt = pt.scatter_add(-1, sector, alpha)
+    pt = pt.scatter_add(-1, (sector + 1) % D, beta)
+    return torch.where(sticking.unsqueeze(-1), pt, zero)

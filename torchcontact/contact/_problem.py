@@ -1,0 +1,268 @@
+"""The time-stepped contact problem: one batched Stewart–Trinkle step."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any
+
+import torch
+from torch import Tensor
+
+_TENSOR_FIELDS = ("M", "v", "f", "Jn", "Jt", "phi", "mu", "mask", "bn", "bt")
+
+
+@dataclass(frozen=True, eq=False)
+class ContactProblem:
+    r"""One time step of rigid-body contact dynamics, batched over leading dimensions ``*B``.
+
+    The step is the velocity-level time-stepping scheme of Stewart and Trinkle (1996) with a
+    polyhedral friction cone of ``D`` directions and the Anitescu–Potra gap stabilisation:
+
+    .. math::
+
+        M (v^+ - v) &= h f + J_n^\top p_n + J_t^\top p_t \\
+        0 \le p_n &\perp J_n v^+ + b_n + \phi / h \ge 0 \\
+        0 \le p_t &\perp J_t v^+ + b_t + E \sigma \ge 0 \\
+        0 \le \sigma &\perp \mu p_n - E^\top p_t \ge 0
+
+    where :math:`p_n, p_t` are impulses over the step, :math:`\sigma` is the sliding speed of
+    each contact and :math:`E` repeats a per-contact scalar over its ``D`` directions.
+
+    Friction directions follow one convention so that planar and spatial scenes share every
+    solver: ``D`` is even, direction ``d + D/2`` is the opposite of direction ``d`` (rows of
+    ``Jt`` and entries of ``bt``), and the directions are ordered by angle around the normal.
+    ``D == 2`` is the planar case (``+t``, ``-t``); ``D >= 4`` is spatial, with the tangent
+    plane spanned by directions 0 and 1.
+
+    Fields (``n`` generalized velocities, ``K`` contact slots, ``D`` friction directions):
+
+    Attributes:
+        M: ``(*B, n, n)`` mass matrix, symmetric positive definite.
+        v: ``(*B, n)`` generalized velocity at the start of the step.
+        f: ``(*B, n)`` non-contact generalized force (gravity, applied forces).
+        Jn: ``(*B, K, n)`` normal rows: the gap rate of slot ``k`` is ``Jn[k] @ v + bn[k]``.
+        Jt: ``(*B, K, D, n)`` friction-direction rows (relative tangential velocity).
+        phi: ``(*B, K)`` signed gap at the start of the step, ``>= 0`` when separated.
+        mu: ``(*B, K)`` Coulomb friction coefficient, ``>= 0``.
+        mask: ``(*B, K)`` bool, ``True`` where the slot is a real contact candidate.
+        h: time step in seconds, ``> 0``.
+        bn: ``(*B, K)`` known normal velocity of kinematically driven bodies (zero if none).
+        bt: ``(*B, K, D)`` known tangential velocity of kinematically driven bodies.
+
+    Fields are broadcast to a common batch shape at construction. Construction validates
+    every field and raises ``ValueError`` naming the field at fault.
+
+    References:
+        D. E. Stewart and J. C. Trinkle, "An implicit time-stepping scheme for rigid body
+        dynamics with inelastic collisions and Coulomb friction", IJNME 39(15), 1996.
+        M. Anitescu and F. A. Potra, "Formulating dynamic multi-rigid-body contact problems
+        with friction as solvable linear complementarity problems", Nonlinear Dyn. 14, 1997.
+    """
+
+    M: Tensor
+    v: Tensor
+    f: Tensor
+    Jn: Tensor
+    Jt: Tensor
+    phi: Tensor
+    mu: Tensor
+    h: float
+    mask: Tensor | None = None
+    bn: Tensor | None = None
+    bt: Tensor | None = None
+
+    def __post_init__(self) -> None:
+        _validate_and_broadcast(self)
+
+    # The optional fields are always tensors after construction; these accessors say so.
+    @property
+    def slot_mask(self) -> Tensor:
+        """``(*B, K)`` bool mask of real contact slots."""
+        assert self.mask is not None
+        return self.mask
+
+    @property
+    def b_normal(self) -> Tensor:
+        """``(*B, K)`` known normal velocity term ``bn``."""
+        assert self.bn is not None
+        return self.bn
+
+    @property
+    def b_tangent(self) -> Tensor:
+        """``(*B, K, D)`` known tangential velocity term ``bt``."""
+        assert self.bt is not None
+        return self.bt
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """The leading batch shape ``*B``."""
+        return self.M.shape[:-2]
+
+    @property
+    def num_dofs(self) -> int:
+        """``n``, the number of generalized velocities."""
+        return self.M.shape[-1]
+
+    @property
+    def num_slots(self) -> int:
+        """``K``, the number of contact slots."""
+        return self.Jn.shape[-2]
+
+    @property
+    def num_directions(self) -> int:
+        """``D``, the number of friction directions per contact."""
+        return self.Jt.shape[-2]
+
+    @property
+    def num_tangents(self) -> int:
+        """Dimension of the tangent space: 1 for planar (``D == 2``), 2 for spatial."""
+        return 1 if self.num_directions == 2 else 2
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """Floating dtype shared by all fields."""
+        return self.M.dtype
+
+    @property
+    def device(self) -> torch.device:
+        """Device shared by all fields."""
+        return self.M.device
+
+    def v_free(self) -> Tensor:
+        """``(*B, n)`` contact-free velocity ``v + h M⁻¹ f`` (Cholesky solve)."""
+        L = torch.linalg.cholesky(self.M)
+        return self.v + self.h * torch.cholesky_solve(self.f.unsqueeze(-1), L).squeeze(-1)
+
+    def map_tensors(self, fn: Any) -> ContactProblem:
+        """Apply ``fn`` to every tensor field (e.g. indexing, reshaping, casting)."""
+        values = {name: fn(getattr(self, name)) for name in _TENSOR_FIELDS}
+        return replace(self, **values)
+
+    def reshape(self, *batch_shape: int) -> ContactProblem:
+        """Return the problem with its batch dimensions reshaped to ``batch_shape``."""
+        old = len(self.batch_shape)
+        return self.map_tensors(lambda t: t.reshape(*batch_shape, *t.shape[old:]))
+
+    def flatten(self) -> ContactProblem:
+        """Return the problem with a single batch dimension ``(prod(*B),)``."""
+        return self.reshape(math.prod(self.batch_shape))
+
+    def __getitem__(self, index: Any) -> ContactProblem:
+        """Index the batch dimensions (trailing field dimensions are kept)."""
+        return self.map_tensors(lambda t: t[index])
+
+    def to(self, *args: Any, **kwargs: Any) -> ContactProblem:
+        """``Tensor.to`` on every field (the bool mask keeps its dtype)."""
+
+        def convert(t: Tensor) -> Tensor:
+            if t.dtype == torch.bool:
+                return t.to(device=kwargs.get("device", t.device))
+            return t.to(*args, **kwargs)
+
+        return self.map_tensors(convert)
+
+
+def _validate_and_broadcast(problem: ContactProblem) -> None:
+    """Check every field of ``problem`` and broadcast them to one batch shape (in place)."""
+    for name in ("M", "v", "f", "Jn", "Jt", "phi", "mu"):
+        value = getattr(problem, name)
+        if not isinstance(value, Tensor):
+            raise ValueError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+        if not value.is_floating_point():
+            raise ValueError(f"{name} must be a floating tensor, got dtype {value.dtype}")
+    M = problem.M
+    if M.dim() < 2 or M.shape[-1] != M.shape[-2] or M.shape[-1] == 0:
+        raise ValueError(f"M must have shape (*B, n, n) with n > 0, got {tuple(M.shape)}")
+    n = M.shape[-1]
+    if problem.Jn.dim() < 2 or problem.Jn.shape[-1] != n:
+        raise ValueError(f"Jn must have shape (*B, K, {n}), got {tuple(problem.Jn.shape)}")
+    K = problem.Jn.shape[-2]
+    Jt = problem.Jt
+    if Jt.dim() < 3 or Jt.shape[-3] != K or Jt.shape[-1] != n:
+        raise ValueError(f"Jt must have shape (*B, {K}, D, {n}), got {tuple(Jt.shape)}")
+    D = Jt.shape[-2]
+    if D < 2 or D % 2:
+        raise ValueError(f"Jt must have an even number D >= 2 of friction directions, got {D}")
+    if not isinstance(problem.h, (int, float)) or not math.isfinite(problem.h) or problem.h <= 0:
+        raise ValueError(f"h must be a finite number > 0, got {problem.h!r}")
+
+    dtype, device = M.dtype, M.device
+    mask = problem.mask
+    if mask is None:
+        mask = torch.ones(problem.phi.shape, dtype=torch.bool, device=device)
+    elif not isinstance(mask, Tensor) or mask.dtype != torch.bool:
+        raise ValueError("mask must be a bool tensor of shape (*B, K)")
+    bn = problem.bn if problem.bn is not None else torch.zeros((K,), dtype=dtype, device=device)
+    bt = problem.bt if problem.bt is not None else torch.zeros((K, D), dtype=dtype, device=device)
+
+    trailing = {
+        "M": (n, n),
+        "v": (n,),
+        "f": (n,),
+        "Jn": (K, n),
+        "Jt": (K, D, n),
+        "phi": (K,),
+        "mu": (K,),
+        "mask": (K,),
+        "bn": (K,),
+        "bt": (K, D),
+    }
+    values: dict[str, Tensor] = {
+        "M": M,
+        "v": problem.v,
+        "f": problem.f,
+        "Jn": problem.Jn,
+        "Jt": Jt,
+        "phi": problem.phi,
+        "mu": problem.mu,
+        "mask": mask,
+        "bn": bn,
+        "bt": bt,
+    }
+    batch_shapes = []
+    for name, value in values.items():
+        if not isinstance(value, Tensor):
+            raise ValueError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+        tail = trailing[name]
+        if value.dim() < len(tail) or tuple(value.shape[value.dim() - len(tail) :]) != tail:
+            shape = ", ".join(["*B", *map(str, tail)])
+            raise ValueError(f"{name} must have shape ({shape}), got {tuple(value.shape)}")
+        if name != "mask":
+            if value.dtype != dtype:
+                raise ValueError(f"{name} has dtype {value.dtype}, but M has dtype {dtype}")
+            if not bool(torch.isfinite(value).all()):
+                raise ValueError(f"{name} contains NaN or inf")
+        if value.device != device:
+            raise ValueError(f"{name} is on {value.device}, but M is on {device}")
+        batch_shapes.append((name, value.shape[: value.dim() - len(tail)]))
+    try:
+        batch = torch.broadcast_shapes(*(shape for _, shape in batch_shapes))
+    except RuntimeError as error:
+        listing = ", ".join(f"{name}: {tuple(shape)}" for name, shape in batch_shapes)
+        raise ValueError(f"batch dimensions of the fields do not broadcast ({listing})") from error
+
+    if bool((values["mu"] < 0).any()):
+        raise ValueError("mu must be >= 0 everywhere")
+    M_sym_error = (M - M.transpose(-1, -2)).abs().amax(dim=(-1, -2))
+    M_scale = M.abs().amax(dim=(-1, -2))
+    if bool((M_sym_error > 1e-8 * M_scale + torch.finfo(dtype).tiny).any()):
+        raise ValueError("M must be symmetric")
+    _, info = torch.linalg.cholesky_ex(M)
+    if bool((info != 0).any()):
+        raise ValueError("M must be positive definite (Cholesky factorization failed)")
+    half = D // 2
+    for name, value, axis in (("Jt", Jt, -2), ("bt", bt, -1)):
+        first, second = value.split(half, dim=axis)
+        scale = 1.0 + value.abs().amax()
+        if bool(((first + second).abs() > 1e-6 * scale).any()):
+            raise ValueError(
+                f"{name}: friction direction d + D/2 must be the opposite of direction d "
+                "(rows come in opposite pairs)"
+            )
+
+    for name, value in values.items():
+        tail = trailing[name]
+        object.__setattr__(problem, name, value.expand(*batch, *tail))
+    object.__setattr__(problem, "h", float(problem.h))
+

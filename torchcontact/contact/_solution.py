@@ -1,0 +1,74 @@
+"""Solutions of contact problems and their per-problem solver status."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Any
+
+import torch
+from torch import Tensor
+
+
+@dataclass(frozen=True, eq=False)
+class SolveStatus:
+    """How well each problem of a batch was solved.
+
+    Attributes:
+        converged: ``(*B,)`` bool, ``True`` where the solver met its tolerance. A solver never
+            reports ``True`` for an answer it did not verify.
+        residual: ``(*B,)`` natural-map complementarity residual of the Stewart–Trinkle LCP,
+            ``max |min(z, w)|`` over all complementarity pairs (see :func:`lcp_residual`).
+        iterations: ``(*B,)`` long, pivots (Lemke), projection rounds (QP), sweeps (PGS) or
+            1 (mode solve).
+    """
+
+    converged: Tensor
+    residual: Tensor
+    iterations: Tensor
+
+    def map_tensors(self, fn: Any) -> SolveStatus:
+        """Apply ``fn`` to every tensor field (indexing, reshaping)."""
+        return SolveStatus(fn(self.converged), fn(self.residual), fn(self.iterations))
+
+
+@dataclass(frozen=True, eq=False)
+class Solution:
+    """The result of one batched contact step.
+
+    Attributes:
+        v_next: ``(*B, n)`` generalized velocity at the end of the step.
+        pn: ``(*B, K)`` normal impulses over the step (zero for padding slots).
+        pt: ``(*B, K, D)`` friction impulses along each friction direction, ``>= 0``.
+        mode: ``(*B, K)`` long contact mode of each slot: 0 separated, 1 sticking,
+            ``2 + d`` sliding with the friction impulse along direction ``d``.
+        status: per-problem convergence and residual.
+    """
+
+    v_next: Tensor
+    pn: Tensor
+    pt: Tensor
+    mode: Tensor
+    status: SolveStatus
+
+    def map_tensors(self, fn: Any) -> Solution:
+        """Apply ``fn`` to every tensor field, including the status."""
+        return replace(
+            self,
+            v_next=fn(self.v_next),
+            pn=fn(self.pn),
+            pt=fn(self.pt),
+            mode=fn(self.mode),
+            status=self.status.map_tensors(fn),
+        )
+
+    def restore_batch(
+        self, batch_shape: tuple[int, ...], *, dtype: torch.dtype, device: torch.device
+    ) -> Solution:
+        """Reshape a solution of a flattened batch ``(B,)`` back to ``batch_shape`` and cast its
+        floating fields to ``dtype`` on ``device``."""
+
+        def restore(t: Tensor) -> Tensor:
+            t = t.reshape((*batch_shape, *t.shape[1:]))
+            return t.to(device=device, dtype=dtype if t.is_floating_point() else t.dtype)
+
+        return self.map_tensors(restore)
