@@ -162,17 +162,18 @@ def is_consistent(
     tol = 10 * default_tolerance(problem.dtype) if atol is None else atol
     velocity_scale, impulse_scale = _scales(problem, pn)
     v_tol, p_tol = tol * velocity_scale, tol * impulse_scale
+    p_tol_d = p_tol.unsqueeze(-1)
     gap_rate, slip = velocity_terms(problem, v_next)
     friction_total = pt.sum(dim=-1)
     direction = (mode - SLIDING).clamp(min=0)
     slip_d = slip.gather(-1, direction.unsqueeze(-1)).squeeze(-1)
     pt_d = pt.gather(-1, direction.unsqueeze(-1)).squeeze(-1)
 
-    nonnegative = (pn >= -p_tol) & (pt >= -p_tol).all(dim=-1)
-    no_impulse = (pn.abs() <= p_tol) & (pt.abs() <= p_tol).all(dim=-1)
+    nonnegative = (pn >= -p_tol) & (pt >= -p_tol_d).all(dim=-1)
+    no_impulse = (pn.abs() <= p_tol) & (pt.abs() <= p_tol_d).all(dim=-1)
     separated_ok = no_impulse & (gap_rate >= -v_tol)
     closed = gap_rate.abs() <= v_tol
-    sticking_ok = closed & (slip.abs() <= v_tol).all(dim=-1)
+    sticking_ok = closed & (slip.abs() <= v_tol.unsqueeze(-1)).all(dim=-1)
     sticking_ok = sticking_ok & (friction_total <= problem.mu * pn + p_tol)
     sliding_ok = closed & ((friction_total - problem.mu * pn).abs() <= p_tol)
     sliding_ok = sliding_ok & ((pt_d - friction_total).abs() <= p_tol)

@@ -15,7 +15,9 @@ from torchcontact.contact._problem import ContactProblem
 from torchcontact.contact._solution import Solution, SolveStatus
 
 #: Iterated-Tikhonov refinements of the constraint solve (see :func:`solve_mode`).
-_REFINEMENTS = 4
+_REFINEMENTS = 5
+#: Smallest share of the largest normal impulse used to weight a friction split.
+_MIN_LOAD_SHARE = 1e-3
 
 
 def validate_mode(problem: ContactProblem, mode: Tensor) -> Tensor:
@@ -55,9 +57,12 @@ def solve_mode(problem: ContactProblem, mode: Tensor) -> Solution:
     ``C M⁻¹ Gᵀ x = r`` on the active rows ``C``. Redundant contacts (a box resting on
     two corners with identical friction rows, four coplanar corners in 3-D) make it singular
     but consistent: the end velocity is unique while the impulse split is not. The system is
-    solved by iterated Tikhonov regularisation (``(A + εI) x_{i+1} = b + ε x_i``, ``x_0 = 0``,
-    ε = √eps·max|diag A|), which converges to the minimum-norm impulses when singular and
-    to the exact solution, to machine precision, when not. Every operation is differentiable.
+    solved by iterated Tikhonov regularisation (``(A + εP) x_{i+1} = b + εP x_i``, ``x_0 = 0``,
+    ε = √eps·max|diag A|), which converges to the exact solution, to machine precision, when
+    the system is nonsingular, and otherwise to the impulses of least ``xᵀPx``: a second
+    pass weights each sticking slot's friction by the inverse of its normal impulse, so
+    friction is shared among redundant contacts in proportion to their load (inside every
+    cone whenever the total is inside the total cone). Every operation is differentiable.
 
     Sticking friction impulses are reported as non-negative components along the two
     friction directions that bracket the tangential impulse.
@@ -107,7 +112,16 @@ def solve_mode(problem: ContactProblem, mode: Tensor) -> Solution:
     A = torch.where(both, C @ Minv_GT, torch.zeros((), dtype=problem.dtype))
     A = A + torch.diag_embed((~rows_active).to(problem.dtype))
     b = torch.where(rows_active, rhs, torch.zeros((), dtype=problem.dtype))
-    x = _iterated_tikhonov(A, b)
+    x = _iterated_tikhonov(A, b, torch.ones_like(b))
+    if K and bool(sticking.any()):
+        # Redundant sticking rows leave the friction split free; share it in proportion to
+        # the normal impulses (minimum Σ λ²/pn), which keeps every share inside its cone
+        # whenever the total is inside the total cone.
+        load = x[..., :K].clamp(min=0.0)
+        share = load.amax(dim=-1, keepdim=True) + torch.finfo(problem.dtype).tiny
+        tangent_weight = share / (load + _MIN_LOAD_SHARE * share)
+        weights = torch.cat([torch.ones_like(load), tangent_weight.repeat_interleave(r, dim=-1)], -1)
+        x = _iterated_tikhonov(A, b, weights)
 
     v_next = v_free + (Minv_GT @ x.unsqueeze(-1)).squeeze(-1)
     pn = x[..., :K]
@@ -131,28 +145,30 @@ def solve_mode(problem: ContactProblem, mode: Tensor) -> Solution:
     return Solution(v_next=v_next, pn=pn, pt=pt, mode=mode, status=status)
 
 
-def _iterated_tikhonov(A: Tensor, b: Tensor) -> Tensor:
+def _iterated_tikhonov(A: Tensor, b: Tensor, weights: Tensor) -> Tensor:
     """Solve ``A x = b`` (batched, possibly singular but consistent) by iterated Tikhonov.
+
+    Iterates ``(A + ε P) x_{i+1} = b + ε P x_i`` from ``x_0 = 0`` with ``P = diag(weights)``.
 
     Args:
         A: ``(*B, m, m)`` system matrices.
         b: ``(*B, m)`` right-hand sides.
+        weights: ``(*B, m)`` positive regularisation weights ``P``.
 
     Returns:
-        ``(*B, m)``: the solution when ``A`` is nonsingular; the minimum-norm solution
-        (up to the regularisation's geometric convergence) when singular and consistent.
+        ``(*B, m)``: the solution when ``A`` is nonsingular; when singular and consistent, the
+        solution of least ``xᵀ P x`` (up to the regularisation's geometric convergence).
     """
     if A.shape[-1] == 0:
         return b
     eps = torch.finfo(A.dtype).eps ** 0.5
     diagonal_scale = A.diagonal(dim1=-2, dim2=-1).abs().amax(dim=-1, keepdim=True)
-    shift = (eps * diagonal_scale).unsqueeze(-1)
-    identity = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
-    LU, pivots = torch.linalg.lu_factor(A + shift * identity)
-    x = torch.zeros_like(b).unsqueeze(-1)
+    shift = eps * diagonal_scale * weights
+    LU, pivots = torch.linalg.lu_factor(A + torch.diag_embed(shift))
+    x = torch.zeros_like(b)
     for _ in range(_REFINEMENTS):
-        x = torch.linalg.lu_solve(LU, pivots, b.unsqueeze(-1) + shift * x)
-    return x.squeeze(-1)
+        x = torch.linalg.lu_solve(LU, pivots, (b + shift * x).unsqueeze(-1)).squeeze(-1)
+    return x
 
 
 def _bracket_decomposition(Jt: Tensor, tangential: Tensor, sticking: Tensor) -> Tensor:

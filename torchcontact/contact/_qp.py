@@ -27,8 +27,8 @@ OSQP_SETTINGS: dict[str, float | int | bool] = {
     "eps_prim_inf": 1e-14,
     "eps_dual_inf": 1e-14,
     "max_iter": 200_000,
-    "polish": False,
-    "polish_refine_iter": 10,
+    "polishing": False,
+    "raise_error": False,
 }
 
 
