@@ -83,7 +83,9 @@ def test_resting_box_has_no_drift_and_corner_forces_sum_to_weight(method: str) -
     """Two corners at rest (a degenerate LCP): v⁺ = 0 and each corner carries m g h / 2."""
     q, v = resting_state()
     solution = _solve_checked(box_problem(q=q, v=v), method)
-    torch.testing.assert_close(solution.v_next, torch.zeros(3, dtype=torch.float64), atol=1e-12, rtol=0)
+    torch.testing.assert_close(
+        solution.v_next, torch.zeros(3, dtype=torch.float64), atol=1e-12, rtol=0
+    )
     torch.testing.assert_close(
         solution.pn, torch.full((2,), MASS * G * H / 2, dtype=torch.float64), atol=1e-12, rtol=0
     )
@@ -109,7 +111,9 @@ def test_push_low_slides_without_rotation(method: str) -> None:
     force = 1.2 * 0.5 * MASS * G
     height = 0.5 * MASS * G * A_HALF / force
     solution = _push(height, force, method)
-    assert solution.v_next[0].item() == pytest.approx(H * (force - 0.5 * MASS * G) / MASS, abs=1e-10)
+    assert solution.v_next[0].item() == pytest.approx(
+        H * (force - 0.5 * MASS * G) / MASS, abs=1e-10
+    )
     assert solution.v_next[2].item() == pytest.approx(0.0, abs=1e-10)
 
 
@@ -125,7 +129,9 @@ def test_push_high_tips_exactly_past_the_statics_threshold(method: str, ratio: f
     height = ratio * MASS * G * A_HALF / force
     solution = _push(height, force, method)
     if ratio < 1:
-        torch.testing.assert_close(solution.v_next, torch.zeros(3, dtype=torch.float64), atol=1e-10, rtol=0)
+        torch.testing.assert_close(
+            solution.v_next, torch.zeros(3, dtype=torch.float64), atol=1e-10, rtol=0
+        )
         assert solution.mode.tolist() == [STICKING, STICKING]
     else:
         inertia = MASS * (A_HALF**2 + B_HALF**2) / 3

@@ -60,7 +60,8 @@ def test_lemke_degenerate_q_with_ties_terminates() -> None:
     q = np.array([-1.0, -1.0, -1.0])
     result = lemke(A, q)
     assert result.outcome is LemkeOutcome.SOLVED
-    assert result.z.min() >= 0 and result.w.min() >= -1e-12
+    assert result.z.min() >= 0
+    assert result.w.min() >= -1e-12
     assert abs(result.z @ result.w) < 1e-12
     assert any(np.allclose(result.z, s) for s in _enumerate_lcp(A, q))
 
@@ -111,7 +112,9 @@ def _random_boxes(seed: int, batch: int = 40):
         return torch.rand(*shape, generator=gen, dtype=torch.float64)
 
     tilted = uniform(batch) < 0.5
-    theta = torch.where(tilted, 0.3 * (uniform(batch) - 0.5), torch.zeros(batch, dtype=torch.float64))
+    theta = torch.where(
+        tilted, 0.3 * (uniform(batch) - 0.5), torch.zeros(batch, dtype=torch.float64)
+    )
     height = 0.25 * torch.cos(theta) + 0.5 * torch.sin(theta).abs() + 0.002 * uniform(batch)
     height = torch.where(tilted, height, torch.full_like(height, 0.25))
     q = torch.stack([torch.zeros_like(theta), height, theta], dim=-1)
@@ -133,7 +136,8 @@ def test_lemke_and_qp_agree_on_frictional_planar_problems(seed: int) -> None:
     torch.testing.assert_close(qp_solution.v_next, lemke_solution.v_next, atol=1e-6, rtol=0)
     assert bool(is_consistent(problem, lemke_solution).all())
     modes = lemke_solution.mode
-    assert {0, 1}.issubset(set(modes.unique().tolist())) and int(modes.max()) >= 2
+    assert {0, 1}.issubset(set(modes.unique().tolist()))
+    assert int(modes.max()) >= 2
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -175,11 +179,15 @@ def test_spatial_sticking_friction_is_written_on_bracketing_directions() -> None
     problem = spatial_box_problem(v=torch.zeros(1, 6, dtype=torch.float64), force=force)
     mode = torch.ones(1, 4, dtype=torch.long)
     solution = solve_mode(problem, mode)
-    torch.testing.assert_close(solution.v_next, torch.zeros(1, 6, dtype=torch.float64), atol=1e-12, rtol=0)
+    torch.testing.assert_close(
+        solution.v_next, torch.zeros(1, 6, dtype=torch.float64), atol=1e-12, rtol=0
+    )
     total = solution.pt.sum(dim=-2)[0]  # (D,)
     angles = torch.arange(8, dtype=torch.float64) * (math.pi / 4)
     net = torch.stack([total @ torch.cos(angles), total @ torch.sin(angles)])
-    torch.testing.assert_close(net, torch.full((2,), -2.0 * 0.01, dtype=torch.float64), atol=1e-12, rtol=0)
+    torch.testing.assert_close(
+        net, torch.full((2,), -2.0 * 0.01, dtype=torch.float64), atol=1e-12, rtol=0
+    )
     # Directions at 45° steps: (−1, −1)/√2 is direction 5. Internal friction forces that
     # cancel between corners are free; they stay at round-off level.
     assert total[[0, 1, 2, 3, 4, 6, 7]].abs().max().item() < 1e-8 * total[5].item()
@@ -191,7 +199,8 @@ def test_capped_simplex_projection_matches_brute_force() -> None:
     x = torch.randn(200, 4, generator=gen, dtype=torch.float64)
     cap = torch.rand(200, generator=gen, dtype=torch.float64)
     projected = project_capped_simplex(x, cap)
-    assert (projected >= 0).all() and (projected.sum(-1) <= cap + 1e-12).all()
+    assert (projected >= 0).all()
+    assert (projected.sum(-1) <= cap + 1e-12).all()
     # Optimality: no feasible random point is closer.
     candidates = torch.rand(200, 2000, 4, generator=gen, dtype=torch.float64)
     candidates = candidates / candidates.sum(-1, keepdim=True).clamp(min=1.0) * cap[:, None, None]

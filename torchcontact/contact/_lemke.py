@@ -192,8 +192,9 @@ def solve_lemke(problem: ContactProblem, *, max_pivots: int | None = None) -> So
     for index in range(count):
         slots = np.flatnonzero(mask_np[index])
         rows = np.concatenate([slots, K + (slots[:, None] * D + np.arange(D)).ravel()])
-        A, q = _stewart_trinkle(W_np[index][np.ix_(rows, rows)], q_np[index][rows],
-                                mu_np[index][slots], D)
+        A, q = _stewart_trinkle(
+            W_np[index][np.ix_(rows, rows)], q_np[index][rows], mu_np[index][slots], D
+        )
         result = lemke(A, q, max_pivots=max_pivots)
         impulses[index, rows] = result.z[: rows.size]
         solved[index] = result.outcome is LemkeOutcome.SOLVED
@@ -206,14 +207,16 @@ def solve_lemke(problem: ContactProblem, *, max_pivots: int | None = None) -> So
     scale = 1.0 + q_contact.abs().amax(dim=-1) + p.abs().amax(dim=-1) if K else 1.0 + residual
     converged = torch.from_numpy(solved) & (residual <= default_tolerance(torch.float64) * scale)
     mode = contact_mode(flat, v_next=v_next, pn=pn)
-    status = SolveStatus(converged=converged, residual=residual, iterations=torch.from_numpy(pivots))
+    status = SolveStatus(
+        converged=converged, residual=residual, iterations=torch.from_numpy(pivots)
+    )
     solution = Solution(v_next=v_next, pn=pn, pt=pt, mode=mode, status=status)
     return solution.restore_batch(batch, dtype=problem.dtype, device=problem.device)
 
 
-def _stewart_trinkle(W: FloatArray, q_contact: FloatArray, mu: FloatArray, D: int) -> tuple[
-    FloatArray, FloatArray
-]:
+def _stewart_trinkle(
+    W: FloatArray, q_contact: FloatArray, mu: FloatArray, D: int
+) -> tuple[FloatArray, FloatArray]:
     """Assemble the Stewart–Trinkle LCP ``(A, q)`` of size ``K + K·D + K`` from ``W`` and ``q``."""
     K = mu.shape[0]
     E = np.kron(np.eye(K), np.ones((D, 1)))

@@ -34,7 +34,9 @@ def validate_mode(problem: ContactProblem, mode: Tensor) -> Tensor:
         mode = mode.to(device=problem.device, dtype=torch.long).expand(shape)
     except RuntimeError as error:
         raise ValueError(f"mode has shape {tuple(mode.shape)}; expected {shape}") from error
-    if mode.numel() and (int(mode.min()) < 0 or int(mode.max()) >= SLIDING + problem.num_directions):
+    if mode.numel() and (
+        int(mode.min()) < 0 or int(mode.max()) >= SLIDING + problem.num_directions
+    ):
         raise ValueError(f"mode values must lie in [0, {SLIDING + problem.num_directions})")
     return mode
 
@@ -120,7 +122,9 @@ def solve_mode(problem: ContactProblem, mode: Tensor) -> Solution:
         load = x[..., :K].clamp(min=0.0)
         share = load.amax(dim=-1, keepdim=True) + torch.finfo(problem.dtype).tiny
         tangent_weight = share / (load + _MIN_LOAD_SHARE * share)
-        weights = torch.cat([torch.ones_like(load), tangent_weight.repeat_interleave(r, dim=-1)], -1)
+        weights = torch.cat(
+            [torch.ones_like(load), tangent_weight.repeat_interleave(r, dim=-1)], -1
+        )
         x = _iterated_tikhonov(A, b, weights)
 
     v_next = v_free + (Minv_GT @ x.unsqueeze(-1)).squeeze(-1)

@@ -265,4 +265,3 @@ def _validate_and_broadcast(problem: ContactProblem) -> None:
         tail = trailing[name]
         object.__setattr__(problem, name, value.expand(*batch, *tail))
     object.__setattr__(problem, "h", float(problem.h))
-

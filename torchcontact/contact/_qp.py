@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import scipy.sparse as sp
 import torch
@@ -21,7 +23,7 @@ from torchcontact.contact._solution import Solution, SolveStatus
 FloatArray = NDArray[np.float64]
 
 #: OSQP settings tight enough for the staggered projections to match Lemke to 1e-6.
-OSQP_SETTINGS: dict[str, float | int | bool] = {
+OSQP_SETTINGS: dict[str, Any] = {
     "eps_abs": 1e-12,
     "eps_rel": 1e-12,
     "eps_prim_inf": 1e-14,
@@ -32,9 +34,7 @@ OSQP_SETTINGS: dict[str, float | int | bool] = {
 }
 
 
-def solve_qp(
-    problem: ContactProblem, *, max_rounds: int = 500, tol: float = 1e-11
-) -> Solution:
+def solve_qp(problem: ContactProblem, *, max_rounds: int = 500, tol: float = 1e-11) -> Solution:
     r"""Solve every problem of the batch with convex QPs (OSQP), one by one.
 
     Frictionless slots reduce the LCP to one convex QP in the normal impulses,
@@ -106,7 +106,9 @@ def solve_qp(
         residual <= 1e3 * default_tolerance(torch.float64) * scale
     )
     mode = contact_mode(flat, v_next=v_next, pn=pn_t, atol=1e-7)
-    status = SolveStatus(converged=converged, residual=residual, iterations=torch.from_numpy(rounds))
+    status = SolveStatus(
+        converged=converged, residual=residual, iterations=torch.from_numpy(rounds)
+    )
     solution = Solution(v_next=v_next, pn=pn_t, pt=pt_t, mode=mode, status=status)
     return solution.restore_batch(batch, dtype=problem.dtype, device=problem.device)
 

@@ -1,0 +1,133 @@
+"""solve_mode: differentiability, batching, dtypes and its validation."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from tests.contact.boxes import box_problem, resting_state
+from torchcontact.contact import SLIDING, STICKING, ContactProblem, solve, solve_mode
+
+
+def _pushed_box() -> ContactProblem:
+    q, v = resting_state()
+    v[0] = 0.3
+    return box_problem(
+        q=q,
+        v=v,
+        mu=0.5,
+        force=torch.tensor([3.0, 0.0], dtype=torch.float64),
+        force_point=(-0.5, 0.1),
+    )
+
+
+@pytest.mark.parametrize(
+    ("mode", "unique_split"),
+    [
+        ([SLIDING + 1, SLIDING + 1], True),
+        ([STICKING, STICKING], False),
+        ([0, STICKING], True),
+        ([SLIDING + 1, 0], True),
+    ],
+)
+def test_gradcheck_with_respect_to_every_input(mode: list[int], unique_split: bool) -> None:
+    """Gradients match finite differences; two sticking corners share identical friction rows,
+    so their friction split is not a function of the inputs and only v⁺, pn are checked."""
+    base = _pushed_box()
+    mode_t = torch.tensor(mode)
+    phi0 = torch.tensor([0.001, 0.002], dtype=torch.float64)
+
+    def step(v, f, phi, mu, Jn, Jt_half):
+        problem = ContactProblem(
+            M=base.M,
+            v=v,
+            f=f,
+            Jn=Jn,
+            Jt=torch.cat([Jt_half, -Jt_half], dim=-2),
+            phi=phi,
+            mu=mu,
+            h=base.h,
+        )
+        solution = solve_mode(problem, mode_t)
+        if unique_split:
+            return solution.v_next, solution.pn, solution.pt
+        return solution.v_next, solution.pn
+
+    inputs = (
+        base.v.clone(),
+        base.f.clone(),
+        phi0,
+        base.mu.clone(),
+        base.Jn.clone(),
+        base.Jt[..., :1, :].clone(),
+    )
+    inputs = tuple(t.requires_grad_(True) for t in inputs)
+    assert torch.autograd.gradcheck(step, inputs, eps=1e-6, atol=1e-7)
+
+
+def test_batched_equals_looped_and_float32_matches_float64() -> None:
+    gen = torch.Generator().manual_seed(3)
+    q, v = resting_state((16,))
+    v = v + 0.5 * torch.randn(16, 3, generator=gen, dtype=torch.float64)
+    v[:, 1] = 0.0
+    problem = box_problem(
+        q=q, v=v, mu=0.6, force=torch.randn(16, 2, generator=gen, dtype=torch.float64)
+    )
+    mode = solve(problem, "lemke").mode
+    batched = solve_mode(problem, mode)
+    for index in range(16):
+        single = solve_mode(problem[index], mode[index])
+        torch.testing.assert_close(single.v_next, batched.v_next[index], atol=1e-14, rtol=0)
+        torch.testing.assert_close(single.pn, batched.pn[index], atol=1e-14, rtol=0)
+    as_float = solve_mode(problem.to(torch.float32), mode)
+    assert as_float.v_next.dtype == torch.float32
+    torch.testing.assert_close(as_float.v_next.double(), batched.v_next, atol=1e-5, rtol=0)
+    assert bool(as_float.status.converged.all())
+
+
+def test_batch_shape_is_preserved_and_padding_slots_carry_nothing() -> None:
+    q, v = resting_state((2, 3))
+    problem = box_problem(q=q, v=v, corners=(0, 1, 2))
+    masked = ContactProblem(
+        M=problem.M,
+        v=problem.v,
+        f=problem.f,
+        Jn=problem.Jn,
+        Jt=problem.Jt,
+        phi=problem.phi,
+        mu=problem.mu,
+        h=problem.h,
+        mask=torch.tensor([True, True, False]),
+    )
+    mode = torch.tensor([STICKING, STICKING, STICKING])  # the padding slot's mode is ignored
+    solution = solve_mode(masked, mode)
+    assert solution.v_next.shape == (2, 3, 3)
+    assert solution.mode[..., 2].eq(0).all()
+    assert solution.pn[..., 2].eq(0).all()
+    assert solution.pt[..., 2, :].eq(0).all()
+    torch.testing.assert_close(
+        solution.pn.sum(-1), torch.full((2, 3), 2.0 * 9.81 * 0.01, dtype=torch.float64)
+    )
+
+
+def test_wrong_mode_is_reported_by_the_residual_not_hidden() -> None:
+    """Forcing a sliding box to stick solves the linear system but violates the friction cone."""
+    problem = _pushed_box()
+    right = solve(problem, "lemke")
+    wrong = solve_mode(problem, torch.tensor([STICKING, STICKING]))
+    assert right.status.residual.item() < 1e-12
+    assert bool(wrong.status.converged)  # the linear system itself was solved
+    assert wrong.status.residual.item() > 1e-3
+
+
+@pytest.mark.parametrize(
+    ("mode", "message"),
+    [
+        (torch.tensor([0.0, 1.0]), "integer"),
+        (torch.tensor([0, 5]), r"\[0, 4\)"),
+        (torch.tensor([0, 1, 1]), "shape"),
+    ],
+)
+def test_bad_mode_raises(mode: torch.Tensor, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        solve_mode(_pushed_box(), mode)

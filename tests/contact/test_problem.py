@@ -1,0 +1,86 @@
+"""ContactProblem validation: every bad field is named."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from tests.contact.boxes import box_problem, resting_state
+from torchcontact.contact import ContactProblem, solve
+
+
+def _fields() -> dict:
+    q, v = resting_state()
+    problem = box_problem(q=q, v=v)
+    return {name: getattr(problem, name) for name in ("M", "v", "f", "Jn", "Jt", "phi", "mu", "h")}
+
+
+def _replace(name: str, value) -> dict:
+    fields = _fields()
+    fields[name] = value
+    return fields
+
+
+@pytest.mark.parametrize(
+    ("name", "make", "message"),
+    [
+        ("M", lambda f: f["M"][:2, :2], "Jn must have shape"),
+        (
+            "M",
+            lambda f: torch.diag(torch.tensor([1.0, -1.0, 1.0], dtype=torch.float64)),
+            "M must be positive definite",
+        ),
+        (
+            "M",
+            lambda f: f["M"] + torch.triu(torch.ones(3, 3, dtype=torch.float64), 1),
+            "M must be symmetric",
+        ),
+        ("v", lambda f: f["v"][:2], "v must have shape"),
+        ("f", lambda f: torch.tensor([0.0, math.nan, 0.0], dtype=torch.float64), "f contains NaN"),
+        ("Jn", lambda f: f["Jn"].float(), "Jn has dtype"),
+        ("Jt", lambda f: f["Jt"][..., :1, :], "even number"),
+        ("Jt", lambda f: f["Jt"].abs(), "opposite"),
+        (
+            "phi",
+            lambda f: torch.full((2,), math.inf, dtype=torch.float64),
+            "phi contains NaN or inf",
+        ),
+        ("phi", lambda f: torch.zeros(3, dtype=torch.float64), "phi must have shape"),
+        ("mu", lambda f: torch.tensor([0.5, -0.1], dtype=torch.float64), "mu must be >= 0"),
+        ("mu", lambda f: [0.5, 0.5], "mu must be a torch.Tensor"),
+        ("h", lambda f: 0.0, "h must be a finite number > 0"),
+        ("h", lambda f: math.nan, "h must be a finite number > 0"),
+    ],
+)
+def test_bad_field_raises_value_error_naming_it(name: str, make, message: str) -> None:
+    fields = _fields()
+    with pytest.raises(ValueError, match=message):
+        ContactProblem(**_replace(name, make(fields)))
+
+
+def test_bad_mask_and_batch_shapes_are_named() -> None:
+    with pytest.raises(ValueError, match="mask must be a bool tensor"):
+        ContactProblem(**_fields(), mask=torch.ones(2))
+    fields = _fields()
+    fields["v"] = torch.zeros(4, 3, dtype=torch.float64)
+    fields["phi"] = torch.zeros(5, 2, dtype=torch.float64)
+    with pytest.raises(ValueError, match="do not broadcast"):
+        ContactProblem(**fields)
+
+
+def test_fields_broadcast_to_a_common_batch() -> None:
+    fields = _fields()
+    fields["v"] = torch.zeros(4, 3, dtype=torch.float64)
+    problem = ContactProblem(**fields)
+    assert problem.batch_shape == (4,)
+    assert problem.Jt.shape == (4, 2, 2, 3)
+    assert problem.mask.shape == (4, 2)
+    assert problem.flatten().batch_shape == (4,)
+    assert problem[1:3].batch_shape == (2,)
+
+
+def test_unknown_method_is_named() -> None:
+    with pytest.raises(ValueError, match="method must be"):
+        solve(ContactProblem(**_fields()), "simplex")  # type: ignore[arg-type]
