@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from tests.contact.boxes import box_problem, resting_state
-from torchcontact.contact import ContactProblem, solve
+from torchcontact.contact import ContactProblem, planar_box_problem, solve
 
 
 def _fields() -> dict:
@@ -84,3 +84,15 @@ def test_fields_broadcast_to_a_common_batch() -> None:
 def test_unknown_method_is_named() -> None:
     with pytest.raises(ValueError, match="method must be"):
         solve(ContactProblem(**_fields()), "simplex")  # type: ignore[arg-type]
+
+
+def test_library_box_example_equals_the_hand_written_one() -> None:
+    gen = torch.Generator().manual_seed(5)
+    q = torch.randn(7, 3, generator=gen, dtype=torch.float64)
+    v = torch.randn(7, 3, generator=gen, dtype=torch.float64)
+    force = torch.randn(7, 2, generator=gen, dtype=torch.float64)
+    options = {"force": force, "force_point": (-0.5, 0.1), "corners": (0, 1, 2, 3), "mu": 0.3}
+    ours = planar_box_problem(q=q, v=v, **options)
+    by_hand = box_problem(q=q, v=v, **options)
+    for name in ("M", "v", "f", "Jn", "Jt", "phi", "mu"):
+        torch.testing.assert_close(getattr(ours, name), getattr(by_hand, name), msg=name)

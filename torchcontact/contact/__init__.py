@@ -5,6 +5,12 @@ by OSQP with staggered projections, by batched projected Gauss–Seidel, or, wit
 mode known, by one differentiable linear solve (:func:`solve_mode`).
 """
 
+from torchcontact.contact._examples import (
+    BOX_CORNER_SIGNS,
+    BoxRollout,
+    planar_box_problem,
+    rollout_planar_box,
+)
 from torchcontact.contact._lcp import (
     SEPARATED,
     SLIDING,
@@ -23,9 +29,11 @@ from torchcontact.contact._solution import Solution, SolveStatus
 from torchcontact.contact._solve import Method, solve
 
 __all__ = [
+    "BOX_CORNER_SIGNS",
     "SEPARATED",
     "SLIDING",
     "STICKING",
+    "BoxRollout",
     "ContactProblem",
     "LemkeOutcome",
     "LemkeResult",
@@ -37,7 +45,9 @@ __all__ = [
     "is_consistent",
     "lcp_residual",
     "lemke",
+    "planar_box_problem",
     "project_capped_simplex",
+    "rollout_planar_box",
     "solve",
     "solve_lemke",
     "solve_mode",

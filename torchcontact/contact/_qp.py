@@ -139,12 +139,12 @@ def _staggered_projections(
     frictional = bool(mu.max() > 0)
     cone = sp.csc_matrix(np.kron(np.eye(K), np.ones((1, D))))
     for round_index in range(1, max_rounds + 1):
-        pn_new = _nonnegative_qp(Wnn, qn + Wnt @ pt)
+        pn_new = _nonnegative_qp(Wnn, qn + Wnt @ pt, start=pn)
         if pn_new is None:
             return pn, pt, False, round_index
         if not frictional:
             return pn_new, pt, True, round_index
-        pt_new = _nonnegative_qp(Wtt, qt + Wtn @ pn_new, G=cone, h=mu * pn_new)
+        pt_new = _nonnegative_qp(Wtt, qt + Wtn @ pn_new, start=pt, G=cone, h=mu * pn_new)
         if pt_new is None:
             return pn_new, pt, False, round_index
         change = max(np.abs(pn_new - pn).max(), np.abs(pt_new - pt).max())
@@ -156,13 +156,19 @@ def _staggered_projections(
 
 
 def _nonnegative_qp(
-    P: FloatArray, c: FloatArray, *, G: sp.csc_matrix | None = None, h: FloatArray | None = None
+    P: FloatArray,
+    c: FloatArray,
+    *,
+    start: FloatArray,
+    G: sp.csc_matrix | None = None,
+    h: FloatArray | None = None,
 ) -> FloatArray | None:
-    """``argmin ½ xᵀPx + cᵀx`` s.t. ``x ≥ 0`` (and ``G x ≤ h``) with OSQP; ``None`` on failure."""
+    """``argmin ½ xᵀPx + cᵀx`` s.t. ``x ≥ 0`` (and ``G x ≤ h``) with OSQP, warm-started at
+    ``start``; ``None`` on failure."""
     size = c.shape[0]
     P_sym = sp.csc_matrix(0.5 * (P + P.T))
     qp = Problem(P_sym, c, G=G, h=h, lb=np.zeros(size), ub=np.full(size, np.inf))
-    result = solve_problem(qp, solver="osqp", verbose=False, **OSQP_SETTINGS)
+    result = solve_problem(qp, solver="osqp", initvals=start, verbose=False, **OSQP_SETTINGS)
     if not result.found or result.x is None:
         return None
     # OSQP meets bounds only to its tolerance; impulses are projected onto them exactly.

@@ -1,0 +1,34 @@
+"""The main job and the benchmarks run end to end (small sizes)."""
+
+from __future__ import annotations
+
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+from torchcontact.demo import DemoArgs, run
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_demo_writes_plot_and_summary_with_closed_form_agreement(tmp_path: Path) -> None:
+    summary = run(DemoArgs(out=tmp_path, problems=60))
+    assert (tmp_path / "demo.png").stat().st_size > 10_000
+    assert (tmp_path / "summary.md").read_text() == summary
+    slide_error = float(re.search(r"max\(v₀ − μ g t, 0\)\| = ([0-9.e+-]+)", summary).group(1))
+    assert slide_error < 1e-12
+    assert "| lemke (loop) |" in summary
+    assert "60/60" in summary
+
+
+def test_contact_benchmark_quick_mode_prints_its_table() -> None:
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "bench_contact.py"), "--quick"],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=ROOT,
+    )
+    rows = [line for line in result.stdout.splitlines() if line.startswith("| 100 |")]
+    assert len(rows) == 4
