@@ -34,6 +34,7 @@ test: lint typecheck pytest
 
 bench: venv
 	$(PY) benchmarks/bench_contact.py
+	$(PY) benchmarks/bench_robots.py
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .mypy_cache .ruff_cache

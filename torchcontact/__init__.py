@@ -1,7 +1,7 @@
 """torchcontact: contact-aware estimation, learning and execution for robotic manipulation."""
 
-from torchcontact import contact
+from torchcontact import contact, robots
 
-__all__ = ["__version__", "contact"]
+__all__ = ["__version__", "contact", "robots"]
 
 __version__ = "0.1.0"
