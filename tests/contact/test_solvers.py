@@ -206,3 +206,16 @@ def test_capped_simplex_projection_matches_brute_force() -> None:
     candidates = candidates / candidates.sum(-1, keepdim=True).clamp(min=1.0) * cap[:, None, None]
     best = (candidates - x[:, None]).norm(dim=-1).amin(dim=-1)
     assert ((projected - x).norm(dim=-1) <= best + 1e-12).all()
+
+
+def test_solvers_report_non_convergence_instead_of_garbage() -> None:
+    problem = _random_boxes(0)
+    pgs = solve(problem, "pgs", max_sweeps=1)
+    lemke_limited = solve(problem, "lemke", max_pivots=1)
+    qp_limited = solve(problem, "qp", max_rounds=1)
+    exact = solve(problem, "lemke")
+    for limited in (pgs, lemke_limited, qp_limited):
+        wrong = (limited.v_next - exact.v_next).abs().amax(dim=-1) > 1e-6
+        assert bool(wrong.any())
+        # Every entry that is wrong says so.
+        assert not bool((wrong & limited.status.converged).any())
