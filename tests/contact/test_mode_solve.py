@@ -131,3 +131,19 @@ def test_wrong_mode_is_reported_by_the_residual_not_hidden() -> None:
 def test_bad_mode_raises(mode: torch.Tensor, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         solve_mode(_pushed_box(), mode)
+
+
+def test_initial_impulses_keep_a_known_split_of_redundant_contacts() -> None:
+    """Two sticking corners share identical friction rows: the split is free, v⁺ is not."""
+    q, v = resting_state()
+    problem = box_problem(q=q, v=v, force=torch.tensor([2.0, 0.0], dtype=torch.float64))
+    exact = solve(problem, "lemke")
+    assert exact.mode.tolist() == [STICKING, STICKING]
+    own = solve_mode(problem, exact.mode)
+    anchored = solve_mode(problem, exact.mode, initial_impulses=(exact.pn, exact.pt))
+    torch.testing.assert_close(own.v_next, exact.v_next, atol=1e-12, rtol=0)
+    torch.testing.assert_close(anchored.pt, exact.pt, atol=1e-10, rtol=0)
+    torch.testing.assert_close(anchored.pn, exact.pn, atol=1e-10, rtol=0)
+    # Without the anchor, friction is shared in proportion to the normal load.
+    share = own.pt[:, 0] / own.pn
+    torch.testing.assert_close(share[0], share[1], atol=1e-9, rtol=0)

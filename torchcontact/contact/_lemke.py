@@ -178,7 +178,7 @@ def solve_lemke(problem: ContactProblem, *, max_pivots: int | None = None) -> So
         the pivot limit, or where the result's residual exceeds the float64 tolerance.
     """
     batch, K, D = problem.batch_shape, problem.num_slots, problem.num_directions
-    flat = problem.to(dtype=torch.float64).flatten()
+    flat = problem.to(dtype=torch.float64).flatten().map_tensors(torch.Tensor.detach)
     with torch.no_grad():
         W, Minv_JT = delassus(flat)
         v_free = flat.v_free()

@@ -18,6 +18,10 @@ from torchcontact.contact._solution import Solution, SolveStatus
 _REFINEMENTS = 5
 #: Smallest share of the largest normal impulse used to weight a friction split.
 _MIN_LOAD_SHARE = 1e-3
+#: How much more a sticking friction impulse costs than a normal impulse in the split.
+_FRICTION_COST = 1e3
+#: Refinements of the weighted pass, whose larger shifts converge more slowly.
+_WEIGHTED_REFINEMENTS = 10
 
 
 def validate_mode(problem: ContactProblem, mode: Tensor) -> Tensor:
@@ -41,7 +45,12 @@ def validate_mode(problem: ContactProblem, mode: Tensor) -> Tensor:
     return mode
 
 
-def solve_mode(problem: ContactProblem, mode: Tensor) -> Solution:
+def solve_mode(
+    problem: ContactProblem,
+    mode: Tensor,
+    *,
+    initial_impulses: tuple[Tensor, Tensor] | None = None,
+) -> Solution:
     r"""Solve the contact step with every slot's contact mode fixed.
 
     With the mode known, the complementarity conditions become equalities and the step is one
@@ -62,8 +71,9 @@ def solve_mode(problem: ContactProblem, mode: Tensor) -> Solution:
     solved by iterated Tikhonov regularisation (``(A + εP) x_{i+1} = b + εP x_i``, ``x_0 = 0``,
     ε = √eps·max|diag A|), which converges to the exact solution, to machine precision, when
     the system is nonsingular, and otherwise to the impulses of least ``xᵀPx``: a second
-    pass weights each sticking slot's friction by the inverse of its normal impulse, so
-    friction is shared among redundant contacts in proportion to their load (inside every
+    pass makes sticking friction costlier than normal support and weights each sticking
+    slot's friction by the inverse of its normal impulse, so friction carries no more than
+    it must and is shared among redundant contacts in proportion to their load (inside every
     cone whenever the total is inside the total cone). Every operation is differentiable.
 
     Sticking friction impulses are reported as non-negative components along the two
@@ -73,6 +83,10 @@ def solve_mode(problem: ContactProblem, mode: Tensor) -> Solution:
         problem: the contact problem, batch ``*B``.
         mode: ``(*B, K)`` integer modes (broadcastable); padding slots are treated as
             separated whatever their mode.
+        initial_impulses: optional ``(pn (*B, K), pt (*B, K, D))`` of a known solution with
+            this mode (e.g. Lemke's). The iteration starts there, so where redundant contacts
+            leave the split free the result keeps that split (and its gradient follows it)
+            instead of choosing its own.
 
     Returns:
         The :class:`Solution`. Its ``status.converged`` says the linear system was solved
@@ -114,18 +128,25 @@ def solve_mode(problem: ContactProblem, mode: Tensor) -> Solution:
     A = torch.where(both, C @ Minv_GT, torch.zeros((), dtype=problem.dtype))
     A = A + torch.diag_embed((~rows_active).to(problem.dtype))
     b = torch.where(rows_active, rhs, torch.zeros((), dtype=problem.dtype))
-    x = _iterated_tikhonov(A, b, torch.ones_like(b))
-    if K and bool(sticking.any()):
-        # Redundant sticking rows leave the friction split free; share it in proportion to
-        # the normal impulses (minimum Σ λ²/pn), which keeps every share inside its cone
-        # whenever the total is inside the total cone.
+    if initial_impulses is not None:
+        # Stay at the given solution's impulse split: the iteration's fixed points are the
+        # solutions, so it returns the one nearest the start, and differentiates along it.
+        start = _impulse_coordinates(Jt, initial_impulses, r, rows_active)
+        x = _iterated_tikhonov(A, b, torch.ones_like(b), refinements=_REFINEMENTS, start=start)
+    else:
+        x = _iterated_tikhonov(A, b, torch.ones_like(b), refinements=_REFINEMENTS)
+    if initial_impulses is None and K and bool(sticking.any()):
+        # Redundant sticking rows leave the split of the impulses free. Prefer normal support
+        # over friction, and share friction in proportion to the normal impulses (minimum
+        # Σ pn² + c Σ λ²/pn), which keeps every share inside its cone whenever the total is
+        # inside the total cone.
         load = x[..., :K].clamp(min=0.0)
         share = load.amax(dim=-1, keepdim=True) + torch.finfo(problem.dtype).tiny
-        tangent_weight = share / (load + _MIN_LOAD_SHARE * share)
+        tangent_weight = _FRICTION_COST * share / (load + _MIN_LOAD_SHARE * share)
         weights = torch.cat(
             [torch.ones_like(load), tangent_weight.repeat_interleave(r, dim=-1)], -1
         )
-        x = _iterated_tikhonov(A, b, weights)
+        x = _iterated_tikhonov(A, b, weights, refinements=_WEIGHTED_REFINEMENTS)
 
     v_next = v_free + (Minv_GT @ x.unsqueeze(-1)).squeeze(-1)
     pn = x[..., :K]
@@ -149,15 +170,20 @@ def solve_mode(problem: ContactProblem, mode: Tensor) -> Solution:
     return Solution(v_next=v_next, pn=pn, pt=pt, mode=mode, status=status)
 
 
-def _iterated_tikhonov(A: Tensor, b: Tensor, weights: Tensor) -> Tensor:
+def _iterated_tikhonov(
+    A: Tensor, b: Tensor, weights: Tensor, *, refinements: int, start: Tensor | None = None
+) -> Tensor:
     """Solve ``A x = b`` (batched, possibly singular but consistent) by iterated Tikhonov.
 
-    Iterates ``(A + ε P) x_{i+1} = b + ε P x_i`` from ``x_0 = 0`` with ``P = diag(weights)``.
+    Iterates ``(A + ε P) x_{i+1} = b + ε P x_i`` from ``x_0`` (default 0) with
+    ``P = diag(weights)``.
 
     Args:
         A: ``(*B, m, m)`` system matrices.
         b: ``(*B, m)`` right-hand sides.
         weights: ``(*B, m)`` positive regularisation weights ``P``.
+        refinements: number of iterations.
+        start: ``(*B, m)`` starting point ``x_0`` (treated as a constant), default zeros.
 
     Returns:
         ``(*B, m)``: the solution when ``A`` is nonsingular; when singular and consistent, the
@@ -169,10 +195,39 @@ def _iterated_tikhonov(A: Tensor, b: Tensor, weights: Tensor) -> Tensor:
     diagonal_scale = A.diagonal(dim1=-2, dim2=-1).abs().amax(dim=-1, keepdim=True)
     shift = eps * diagonal_scale * weights
     LU, pivots = torch.linalg.lu_factor(A + torch.diag_embed(shift))
-    x = torch.zeros_like(b)
-    for _ in range(_REFINEMENTS):
+    x = torch.zeros_like(b) if start is None else start.detach()
+    for _ in range(refinements):
         x = torch.linalg.lu_solve(LU, pivots, (b + shift * x).unsqueeze(-1)).squeeze(-1)
     return x
+
+
+def _impulse_coordinates(
+    Jt: Tensor, impulses: tuple[Tensor, Tensor], r: int, rows_active: Tensor
+) -> Tensor:
+    """Unknowns ``x = [pn; λ]`` of the Schur system from impulses ``(pn, pt)``.
+
+    Args:
+        Jt: ``(*B, K, D, n)`` friction-direction rows.
+        impulses: ``pn (*B, K)`` and ``pt (*B, K, D)``.
+        r: tangent dimension (1 planar, 2 spatial).
+        rows_active: ``(*B, K + K·r)`` rows of the system that carry unknowns.
+
+    Returns:
+        ``(*B, K + K·r)``, zero on inactive rows; ``λ`` holds the friction impulse in the
+        coordinates of the tangent basis (directions ``0..r-1``).
+    """
+    pn, pt = impulses
+    D = Jt.shape[-2]
+    if D == 2:
+        tangential = (pt[..., 0] - pt[..., 1]).unsqueeze(-1)
+    else:
+        basis = Jt[..., :2, :]
+        gram = basis @ basis.transpose(-1, -2)
+        gram = gram + torch.finfo(Jt.dtype).eps * torch.eye(2, dtype=Jt.dtype, device=Jt.device)
+        coords = torch.linalg.solve(gram, basis @ Jt.transpose(-1, -2))  # (*B, K, 2, D)
+        tangential = (coords @ pt.unsqueeze(-1)).squeeze(-1)
+    x = torch.cat([pn, tangential.flatten(-2)], dim=-1).to(Jt.dtype)
+    return torch.where(rows_active, x, torch.zeros((), dtype=Jt.dtype, device=Jt.device))
 
 
 def _bracket_decomposition(Jt: Tensor, tangential: Tensor, sticking: Tensor) -> Tensor:

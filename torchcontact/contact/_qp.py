@@ -70,7 +70,7 @@ def solve_qp(problem: ContactProblem, *, max_rounds: int = 500, tol: float = 1e-
         Math. Prog. Comp. 12, 2020.
     """
     batch, K, D = problem.batch_shape, problem.num_slots, problem.num_directions
-    flat = problem.to(dtype=torch.float64).flatten()
+    flat = problem.to(dtype=torch.float64).flatten().map_tensors(torch.Tensor.detach)
     with torch.no_grad():
         W, Minv_JT = delassus(flat)
         v_free = flat.v_free()

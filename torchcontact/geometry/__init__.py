@@ -1,0 +1,32 @@
+"""Planar geometry: convex polygons, half-planes, rigid transforms and contact slots."""
+
+from torchcontact.geometry._se2 import (
+    cross2,
+    perpendicular,
+    point_velocity,
+    rotation_matrix,
+    transform_points,
+    wrench_row,
+)
+from torchcontact.geometry._shapes import HalfPlane, Polygon
+from torchcontact.geometry._slots import (
+    SlotGeometry,
+    concat_slots,
+    halfplane_slots,
+    polygon_slots,
+)
+
+__all__ = [
+    "HalfPlane",
+    "Polygon",
+    "SlotGeometry",
+    "concat_slots",
+    "cross2",
+    "halfplane_slots",
+    "perpendicular",
+    "point_velocity",
+    "polygon_slots",
+    "rotation_matrix",
+    "transform_points",
+    "wrench_row",
+]

@@ -1,0 +1,31 @@
+"""Planar scenes and the batched time-stepping contact simulator."""
+
+from torchcontact.sim._assemble import body_poses, contact_problem
+from torchcontact.sim._scene import Body, BodyKind, Scene, SlotGroup
+from torchcontact.sim._simulator import (
+    SOLVED_BY_EXACT_MODE,
+    SOLVED_BY_GUESS,
+    SOLVED_RAW,
+    UNSOLVED,
+    Rollout,
+    Simulator,
+    StepResult,
+)
+from torchcontact.sim._state import SceneState
+
+__all__ = [
+    "SOLVED_BY_EXACT_MODE",
+    "SOLVED_BY_GUESS",
+    "SOLVED_RAW",
+    "UNSOLVED",
+    "Body",
+    "BodyKind",
+    "Rollout",
+    "Scene",
+    "SceneState",
+    "Simulator",
+    "SlotGroup",
+    "StepResult",
+    "body_poses",
+    "contact_problem",
+]
