@@ -18,6 +18,7 @@ from torchcontact.contact import (
     lemke,
     project_capped_simplex,
     solve,
+    solve_active_set,
     solve_mode,
 )
 
@@ -219,3 +220,15 @@ def test_solvers_report_non_convergence_instead_of_garbage() -> None:
         assert bool(wrong.any())
         # Every entry that is wrong says so.
         assert not bool((wrong & limited.status.converged).any())
+
+
+def test_active_set_from_a_wrong_guess_reaches_lemke() -> None:
+    """Starting from 'all separated', a few batched mode corrections find Lemke's answer."""
+    problem = _random_boxes(2)
+    exact = solve(problem, "lemke")
+    result = solve_active_set(problem, torch.zeros_like(exact.mode), max_iterations=8)
+    converged = result.status.converged
+    assert converged.double().mean().item() > 0.5  # a heuristic: most, not all (75% here)
+    torch.testing.assert_close(result.v_next[converged], exact.v_next[converged], atol=1e-9, rtol=0)
+    assert bool(is_consistent(problem, result)[converged].all())
+    assert not bool(is_consistent(problem, result)[~converged].any())

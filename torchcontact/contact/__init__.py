@@ -5,6 +5,7 @@ by OSQP with staggered projections, by batched projected Gauss–Seidel, or, wit
 mode known, by one differentiable linear solve (:func:`solve_mode`).
 """
 
+from torchcontact.contact._active_set import solve_active_set, update_mode
 from torchcontact.contact._examples import (
     BOX_CORNER_SIGNS,
     BoxRollout,
@@ -49,8 +50,10 @@ __all__ = [
     "project_capped_simplex",
     "rollout_planar_box",
     "solve",
+    "solve_active_set",
     "solve_lemke",
     "solve_mode",
     "solve_pgs",
     "solve_qp",
+    "update_mode",
 ]

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import torch
@@ -135,9 +135,16 @@ class ContactProblem:
         return self.v + self.h * torch.cholesky_solve(self.f.unsqueeze(-1), L).squeeze(-1)
 
     def map_tensors(self, fn: Any) -> ContactProblem:
-        """Apply ``fn`` to every tensor field (e.g. indexing, reshaping, casting)."""
-        values = {name: fn(getattr(self, name)) for name in _TENSOR_FIELDS}
-        return replace(self, **values)
+        """Apply ``fn`` to every tensor field (e.g. indexing, reshaping, casting).
+
+        ``fn`` must preserve validity (batch indexing, reshaping the batch, casting): the
+        result is not validated again, which keeps batch bookkeeping off the hot path.
+        """
+        mapped = object.__new__(ContactProblem)
+        for name in _TENSOR_FIELDS:
+            object.__setattr__(mapped, name, fn(getattr(self, name)))
+        object.__setattr__(mapped, "h", self.h)
+        return mapped
 
     def reshape(self, *batch_shape: int) -> ContactProblem:
         """Return the problem with its batch dimensions reshaped to ``batch_shape``."""

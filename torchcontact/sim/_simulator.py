@@ -13,6 +13,7 @@ from torchcontact.contact import (
     Solution,
     is_consistent,
     solve,
+    solve_active_set,
     solve_mode,
 )
 from torchcontact.geometry import SlotGeometry
@@ -37,7 +38,8 @@ class StepResult:
         pt: ``(*B, K, 2)`` friction impulses along ``+t`` and ``−t``.
         mode: ``(*B, K)`` ground-truth contact modes.
         geometry: slot points, normals (world frame), gaps and candidate flags at the start.
-        solver: ``(*B,)`` long: 0 the previous modes were consistent, 1 an exact solver's
+        solver: ``(*B,)`` long: 0 the previous modes (after active-set corrections) were
+            consistent, 1 an exact solver's
             modes re-solved by ``solve_mode`` (differentiable), 2 the exact solver's raw
             impulses (not differentiable), −1 no solver converged.
         residual: ``(*B,)`` LCP residual of the accepted solution.
@@ -89,9 +91,11 @@ class Simulator:
 
     1. assemble the contact problem of every scene of the batch;
     2. solve all of them with one :func:`~torchcontact.contact.solve_mode` at the previous
-       step's modes (contact modes rarely change between steps);
-    3. check each with :func:`~torchcontact.contact.is_consistent`; send only the failing
-       entries to the exact solvers in ``fallback`` order (Lemke, then the QP fallback);
+       step's modes (contact modes rarely change between steps), and correct the modes of
+       the inconsistent ones by a few batched active-set iterations
+       (:func:`~torchcontact.contact.solve_active_set`);
+    3. send only the entries still inconsistent to the exact solvers in ``fallback`` order
+       (Lemke, then the QP fallback);
     4. re-solve those with ``solve_mode`` at the exact modes, so that every accepted step is
        differentiable through its active modes; an entry whose re-solve is not consistent
        keeps the exact solver's raw impulses (``solver == 2``).
@@ -99,10 +103,12 @@ class Simulator:
     Attributes:
         scene: the scene.
         fallback: exact solvers tried in order for entries whose guessed mode fails.
+        active_set_iterations: mode corrections tried before the exact solvers (0 disables).
     """
 
     scene: Scene
     fallback: tuple[Method, ...] = ("lemke", "qp")
+    active_set_iterations: int = 4
 
     def initial_state(
         self,
@@ -243,8 +249,8 @@ class Simulator:
         batch = problem.batch_shape
         flat = problem.flatten()
         guess = torch.where(flat.slot_mask, guess.reshape(flat.slot_mask.shape), 0)
-        solution = solve_mode(flat, guess)
-        good = is_consistent(flat, solution) & solution.status.converged
+        solution = solve_active_set(flat, guess, max_iterations=self.active_set_iterations)
+        good = solution.status.converged
         solver = torch.where(good, SOLVED_BY_GUESS, UNSOLVED)
         pending = torch.nonzero(~good).squeeze(-1)
         for method in self.fallback:
@@ -259,8 +265,7 @@ class Simulator:
                     flat[done], exact_done.mode, initial_impulses=(exact_done.pn, exact_done.pt)
                 )
                 reproduced = is_consistent(flat[done], again) & again.status.converged
-                chosen = _select(again, exact_done, reproduced)
-                solution = _scatter(solution, done, chosen)
+                solution = solution.scatter(done, again.where(reproduced, exact_done))
                 codes = torch.where(reproduced, SOLVED_BY_EXACT_MODE, SOLVED_RAW)
                 solver = solver.index_put((done,), codes)
             pending = pending[~converged]
@@ -268,46 +273,3 @@ class Simulator:
         return merged.map_tensors(lambda t: t.reshape((*batch, *t.shape[1:]))), solver.reshape(
             batch
         )
-
-
-def _select(first: Solution, second: Solution, use_first: Tensor) -> Solution:
-    """Per entry, ``first`` where ``use_first`` else ``second`` (same batch)."""
-
-    def pick(a: Tensor, b: Tensor) -> Tensor:
-        condition = use_first.reshape(-1, *([1] * (a.dim() - 1)))
-        return torch.where(condition, a, b)
-
-    status = replace(
-        first.status,
-        converged=pick(first.status.converged, second.status.converged),
-        residual=pick(first.status.residual, second.status.residual),
-        iterations=pick(first.status.iterations, second.status.iterations),
-    )
-    return Solution(
-        v_next=pick(first.v_next, second.v_next),
-        pn=pick(first.pn, second.pn),
-        pt=pick(first.pt, second.pt),
-        mode=pick(first.mode, second.mode),
-        status=status,
-    )
-
-
-def _scatter(base: Solution, index: Tensor, update: Solution) -> Solution:
-    """``base`` with entries ``index`` replaced by ``update`` (differentiable)."""
-
-    def put(a: Tensor, b: Tensor) -> Tensor:
-        return a.index_put((index,), b.to(a.dtype))
-
-    status = replace(
-        base.status,
-        converged=put(base.status.converged, update.status.converged),
-        residual=put(base.status.residual, update.status.residual),
-        iterations=put(base.status.iterations, update.status.iterations),
-    )
-    return Solution(
-        v_next=put(base.v_next, update.v_next),
-        pn=put(base.pn, update.pn),
-        pt=put(base.pt, update.pt),
-        mode=put(base.mode, update.mode),
-        status=status,
-    )

@@ -1,0 +1,93 @@
+"""A batched active-set iteration on contact modes, built on the mode-decoupled solve."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchcontact.contact._lcp import (
+    SEPARATED,
+    SLIDING,
+    STICKING,
+    default_tolerance,
+    is_consistent,
+    velocity_terms,
+)
+from torchcontact.contact._mode_solve import solve_mode, validate_mode
+from torchcontact.contact._problem import ContactProblem
+from torchcontact.contact._solution import Solution, SolveStatus
+
+
+def update_mode(problem: ContactProblem, solution: Solution) -> Tensor:
+    """One active-set correction of the modes of a mode-decoupled solution.
+
+    Each slot whose solution violates its own mode switches to the mode that removes the
+    violation: a separated slot that penetrates (gap rate < 0) starts sticking; an active slot
+    that pulls (``pn < 0``) separates; a sticking slot whose friction leaves the cone slides
+    with its friction along the direction that carried it; a sliding slot whose slip turned
+    along its friction starts sticking.
+
+    Args:
+        problem: the contact problem.
+        solution: a solution of ``problem`` at ``solution.mode`` (from :func:`solve_mode`).
+
+    Returns:
+        ``(*B, K)`` long corrected modes.
+    """
+    tol = 10 * default_tolerance(problem.dtype)
+    gap_rate, slip = velocity_terms(problem, solution.v_next)
+    mode, pn, pt = solution.mode, solution.pn, solution.pt
+    scale_v = 1.0 + gap_rate.abs().amax(dim=-1, keepdim=True)
+    scale_p = 1.0 + pn.abs().amax(dim=-1, keepdim=True)
+    direction = (mode - SLIDING).clamp(min=0)
+    slip_d = slip.gather(-1, direction.unsqueeze(-1)).squeeze(-1)
+
+    penetrates = (mode == SEPARATED) & (gap_rate < -tol * scale_v)
+    pulls = (mode >= STICKING) & (pn < -tol * scale_p)
+    outside_cone = (mode == STICKING) & (pt.sum(-1) > problem.mu * pn + tol * scale_p)
+    reverses = (mode >= SLIDING) & (slip_d > tol * scale_v)
+    updated = torch.where(penetrates, STICKING, mode)
+    updated = torch.where(outside_cone, SLIDING + pt.argmax(dim=-1), updated)
+    updated = torch.where(reverses, STICKING, updated)
+    updated = torch.where(pulls, SEPARATED, updated)
+    return torch.where(problem.slot_mask, updated, SEPARATED)
+
+
+def solve_active_set(problem: ContactProblem, mode: Tensor, *, max_iterations: int = 4) -> Solution:
+    """Solve from a mode guess by alternating :func:`solve_mode` and :func:`update_mode`.
+
+    Each iteration is one batched linear solve of the whole batch; a problem stops changing as
+    soon as its solution is consistent with its modes. Like any active-set method on an LCP it
+    can cycle, so it is a fast path, not a reference: ``status.converged`` is ``True`` only for
+    consistent solutions, and the rest should go to an exact solver.
+
+    Args:
+        problem: the contact problem, batch ``*B``.
+        mode: ``(*B, K)`` initial mode guess (e.g. the previous time step's modes).
+        max_iterations: limit on mode corrections.
+
+    Returns:
+        The last :class:`Solution` of each problem, differentiable through its final modes.
+    """
+    mode = validate_mode(problem, mode)
+    batch = problem.batch_shape
+    flat = problem.flatten()
+    solution = solve_mode(flat, mode.reshape(flat.slot_mask.shape))
+    done = is_consistent(flat, solution) & solution.status.converged
+    iterations = torch.ones(done.shape, dtype=torch.long, device=problem.device)
+    for _ in range(max_iterations):
+        pending = torch.nonzero(~done).squeeze(-1)
+        if pending.numel() == 0:
+            break
+        subset = flat[pending]
+        previous = solution.map_tensors(lambda t, index=pending: t[index])
+        candidate = solve_mode(subset, update_mode(subset, previous))
+        solved = is_consistent(subset, candidate) & candidate.status.converged
+        solution = solution.scatter(pending, candidate)
+        done = done.index_put((pending,), solved)
+        iterations = iterations.index_add(0, pending, torch.ones_like(pending))
+    status = SolveStatus(converged=done, residual=solution.status.residual, iterations=iterations)
+    result = Solution(
+        v_next=solution.v_next, pn=solution.pn, pt=solution.pt, mode=solution.mode, status=status
+    )
+    return result.map_tensors(lambda t: t.reshape((*batch, *t.shape[1:])))
