@@ -33,7 +33,9 @@ pytest: venv
 test: lint typecheck pytest
 
 bench: venv
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,bench]"
 	$(PY) benchmarks/bench_contact.py
+	$(PY) benchmarks/bench_sim.py
 	$(PY) benchmarks/bench_robots.py
 
 clean:

@@ -44,7 +44,9 @@ def box_states(sim: Simulator, count: int) -> SceneState:
     theta = torch.where(kind == 1, 1.2, 0.0).to(torch.float64)
     corner = torch.tensor([-0.5, -0.25], dtype=torch.float64)
     cos, sin = torch.cos(theta), torch.sin(theta)
-    center = -torch.stack([cos * corner[0] - sin * corner[1], sin * corner[0] + cos * corner[1]], -1)
+    center = -torch.stack(
+        [cos * corner[0] - sin * corner[1], sin * corner[0] + cos * corner[1]], -1
+    )
     q = torch.stack([center[:, 0], center[:, 1], theta], dim=-1)
     v = torch.zeros(count, 3, dtype=torch.float64)
     v[:, 0] = torch.where(kind == 0, 1.0, 0.0)
@@ -66,7 +68,7 @@ def time_mujoco(steps: int) -> float | None:
     """Seconds for MuJoCo to step one sliding box ``steps`` times; ``None`` if not installed."""
     if importlib.util.find_spec("mujoco") is None:
         return None
-    import mujoco  # noqa: PLC0415 -- optional benchmark dependency
+    import mujoco  # an optional dependency (the bench extra)
 
     model = mujoco.MjModel.from_xml_string(MUJOCO_BOX)
     data = mujoco.MjData(model)

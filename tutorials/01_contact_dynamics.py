@@ -11,21 +11,21 @@
 # ---
 
 # %% [markdown]
-# # 01 · Contact dynamics: one LCP step, four solvers
+# # 01 · Contact dynamics: scenes, the simulator and its solvers
 #
 # A rigid body touching the ground obeys the Stewart–Trinkle time-stepping scheme: over a step
 # of length `h` the contact impulses `pn`, `pt` and the end velocity `v⁺` satisfy Newton–Euler
 # together with complementarity conditions (no impulse unless touching, friction inside the
-# Coulomb cone, sliding only at the cone's edge). `torchcontact.contact` solves that problem
+# Coulomb cone, sliding only at the cone's edge). `torchcontact` solves that problem
 #
-# * exactly, by Lemke's pivoting method (`method="lemke"`, the reference);
-# * by alternating two convex QPs in OSQP (`method="qp"`, staggered projections);
-# * by batched projected Gauss–Seidel (`method="pgs"`);
-# * and, once the **contact mode** (separated / sticking / sliding) is known, by one
-#   differentiable linear solve per problem (`solve_mode`), the building block of the filters.
+# * exactly, by Lemke's pivoting method (`solve(problem, "lemke")`, the reference);
+# * by alternating two convex QPs in OSQP (`"qp"`, staggered projections);
+# * by batched projected Gauss–Seidel (`"pgs"`);
+# * and, once the **contact mode** (separated / sticking / sliding per contact) is known, by
+#   one differentiable linear solve per problem (`solve_mode`), the building block of the filters.
 #
-# This notebook steps a planar box by hand with these solvers and checks them against
-# closed-form physics.
+# The simulator (`torchcontact.sim`) builds the problem from a scene of polygons, guesses each
+# step's modes from the previous step, and calls an exact solver only where the guess fails.
 
 # %%
 import math
@@ -36,51 +36,54 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import torch
 
-from torchcontact.contact import (
-    is_consistent,
-    planar_box_problem,
-    rollout_planar_box,
-    solve,
-    solve_mode,
-)
+from torchcontact.contact import is_consistent, solve, solve_mode
+from torchcontact.geometry import HalfPlane, Polygon
+from torchcontact.sim import Body, Scene, Simulator, contact_problem, draw_scene
 
 FAST = os.environ.get("TORCHCONTACT_FAST") == "1"
 OUT = Path(os.environ.get("TORCHCONTACT_OUT", "runs/tutorials"))
 OUT.mkdir(parents=True, exist_ok=True)
-torch.set_default_dtype(torch.float64)
 G, H, MU = 9.81, 0.01, 0.4
 
 
-BOX = {"mu": MU, "h": H, "corners": (0, 1, 2, 3)}
+def box_scene(*, angle=0.0, size=(1.0, 0.5), extra=()):
+    """A 2 kg box on (possibly tilted) ground, plus any extra bodies."""
+    bodies = (
+        Body("ground", HalfPlane.ground(angle=angle), kind="static"),
+        Body("box", Polygon.box(*size), mass=2.0),
+        *extra,
+    )
+    return Simulator(Scene(bodies=bodies, friction=MU, h=H))
+
+
+def pose(*values):
+    return torch.tensor(values, dtype=torch.float64).reshape(1, 3)
 
 
 # %% [markdown]
 # ## A box sliding to a stop
 #
-# Launched at 1 m/s, the box loses `μ g h` of speed every step and stops at
-# `t = v₀ / (μ g)`. Friction at the bottom corners also pushes the box's weight forward: the
-# leading corner carries more of it, `a (pn_front − pn_back) = b μ (pn_front + pn_back)`.
+# Launched at 1 m/s, the box loses `μ g h` of speed every step and stops at `t = v₀ / (μ g)`.
+# Friction at the bottom corners also shifts the box's weight forward: the leading corner
+# carries more, `a (pn_front − pn_back) = b μ (pn_front + pn_back)`.
 
 # %%
-q0 = torch.tensor([0.0, 0.25, 0.0])
-v0 = torch.tensor([1.0, 0.0, 0.0])
-steps = 40
-run = rollout_planar_box(q=q0, v=v0, steps=steps, **BOX)
-twists, impulses = run.v, run.pn
-t = H * torch.arange(steps + 1)
+sim = box_scene()
+run = sim.rollout(sim.initial_state(q=pose(0, 0.25, 0), v=pose(1.0, 0, 0)), steps=40)
+t = H * torch.arange(41, dtype=torch.float64)
 closed_form = (1.0 - MU * G * t).clamp(min=0.0)
 print(
-    "largest error against v(t) = max(v0 − μ g t, 0):",
-    (twists[:, 0] - closed_form).abs().max().item(),
+    "largest error against max(v0 − μ g t, 0):", (run.v[:, 0, 0] - closed_form).abs().max().item()
 )
+print("steps solved by the previous step's modes:", int((run.solver == 0).sum()), "of 40")
 
 fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
-axes[0].plot(t, twists[:, 0], "o", ms=3, label="Lemke")
+axes[0].plot(t, run.v[:, 0, 0], "o", ms=3, label="simulator")
 axes[0].plot(t, closed_form, "-", label="closed form")
 axes[0].set(xlabel="time (s)", ylabel="vx (m/s)", title="sliding to a stop")
 axes[0].legend()
-axes[1].plot(t[1:], impulses[:, 0] / H, label="back corner")
-axes[1].plot(t[1:], impulses[:, 1] / H, label="front corner")
+axes[1].plot(t[1:], run.pn[:, 0] / H, label="back corner")
+axes[1].plot(t[1:], run.pn[:, 1] / H, label="front corner")
 axes[1].axhline(2.0 * G / 2, color="gray", ls=":", label="m g / 2")
 axes[1].set(xlabel="time (s)", ylabel="normal force (N)", title="corner forces")
 axes[1].legend()
@@ -91,32 +94,25 @@ plt.show()
 # %% [markdown]
 # ## Stick or slip on an incline
 #
-# Tilting gravity by θ models an incline. A block sticks iff `tan θ < μ`; otherwise it
-# accelerates at `g (sin θ − μ cos θ)`. One step from rest shows the threshold at
-# `θ* = atan μ ≈ 21.8°`.
+# On an incline of angle θ a block sticks iff `tan θ < μ`; otherwise it accelerates at
+# `g (sin θ − μ cos θ)`. One step from rest shows the threshold at `θ* = atan μ ≈ 21.8°`.
 
 # %%
 angles = torch.linspace(0.0, 40.0, 9 if FAST else 41)
-speeds = []
+accelerations = []
 for degrees in angles.tolist():
     theta = math.radians(degrees)
-    gravity = (G * math.sin(theta), -G * math.cos(theta))
-    problem = planar_box_problem(
-        q=torch.tensor([0.0, 0.1, 0.0]),
-        v=torch.zeros(3),
-        mu=MU,
-        h=H,
-        gravity=gravity,
-        half_extents=(0.5, 0.1),
-    )
-    speeds.append(solve(problem, "lemke").v_next[0].item())
+    sim = box_scene(angle=theta, size=(1.0, 0.2))
+    center = (-0.1 * math.sin(theta), 0.1 * math.cos(theta))
+    result = sim.step(sim.initial_state(q=pose(*center, theta)))
+    accelerations.append(result.state.v[0, :2].norm().item() / H)
 expected = [
-    max(H * G * (math.sin(math.radians(d)) - MU * math.cos(math.radians(d))), 0.0)
+    max(G * (math.sin(math.radians(d)) - MU * math.cos(math.radians(d))), 0.0)
     for d in angles.tolist()
 ]
 fig, ax = plt.subplots(figsize=(5, 3.5))
-ax.plot(angles, torch.tensor(speeds) / H, "o", label="Lemke")
-ax.plot(angles, torch.tensor(expected) / H, "-", label="g (sin θ − μ cos θ)⁺")
+ax.plot(angles, accelerations, "o", label="simulator")
+ax.plot(angles, expected, "-", label="g (sin θ − μ cos θ)⁺")
 ax.axvline(math.degrees(math.atan(MU)), color="gray", ls=":", label="atan μ")
 ax.set(xlabel="incline (deg)", ylabel="acceleration (m/s²)", title="stick–slip threshold")
 ax.legend()
@@ -124,49 +120,94 @@ fig.savefig(OUT / "01_incline.png", dpi=80)
 plt.show()
 
 # %% [markdown]
-# ## Push to slide or push to tip
+# ## Tipping
 #
-# Pushing the left face of a tall box (half extents `a = 0.25`, `b = 0.5`) at height `y` with a
-# force below `μ m g` tips it about its front corner iff `F y > m g a`. Below the threshold the
-# box stays put; above, the back corner lifts (mode 0) while the front one sticks (mode 1).
+# A tall box (0.5 × 1 m) pushed on its left face at height `y` with a force below `μ m g`
+# tips about its front corner iff `F y > m g a`. Below the threshold it stays put; above, the
+# back corner lifts (mode 0) while the front one sticks (mode 1). A box released past its
+# balance angle on a corner falls onto its side.
 
 # %%
+sim = box_scene(size=(0.5, 1.0))
 force = 0.9 * MU * 2.0 * G
 threshold = 2.0 * G * 0.25 / force
-tall = {"half_extents": (0.25, 0.5)}
-for height in (0.9 * threshold, 1.1 * threshold):
-    push = torch.tensor([force, 0.0])
-    run = rollout_planar_box(
-        q=torch.tensor([0.0, 0.5, 0.0]),
-        v=torch.zeros(3),
-        steps=15 if FAST else 30,
-        force=push,
-        force_point=(-0.25, height - 0.5),
-        **tall,
-        **BOX,
+steps = 15 if FAST else 30
+for ratio in (0.9, 1.1):
+    height = ratio * threshold
+    push = torch.tensor([force, 0.0, -(height - 0.5) * force], dtype=torch.float64)
+    run = sim.rollout(
+        sim.initial_state(q=pose(0, 0.5, 0)), steps=steps, forces=push.expand(steps, 1, 3)
     )
+    angle = math.degrees(run.q[-1, 0, 2].item())
     print(
-        f"push at {height:.3f} m ({height / threshold:.1f}× threshold): "
-        f"final angle {math.degrees(run.q[-1, 2].item()):+.2f}°, first modes {run.mode[0].tolist()}"
+        f"push at {ratio:.1f}× the tipping height: angle {angle:+.2f}°, "
+        f"first modes of the bottom corners {run.mode[0, :2].tolist()}"
     )
+
+theta = 1.3  # the balance angle on a corner is atan(1.0 / 0.5) ≈ 1.107 rad for the wide box
+sim = box_scene()
+corner = torch.tensor([-0.5, -0.25], dtype=torch.float64)
+rotation = torch.tensor(
+    [[math.cos(theta), -math.sin(theta)], [math.sin(theta), math.cos(theta)]], dtype=torch.float64
+)
+center = -(rotation @ corner)
+run = sim.rollout(sim.initial_state(q=pose(center[0].item(), center[1].item(), theta)), steps=150)
+fig, ax = plt.subplots(figsize=(6, 3))
+for k in range(0, 151, 15):
+    draw_scene(ax, sim.scene, q=run.q[k], alpha=0.15 + 0.85 * k / 150, extent=1.5)
+ax.set(xlim=(-1.0, 1.5), ylim=(-0.2, 1.2), title="a box falling onto its side")
+fig.savefig(OUT / "01_tipping.png", dpi=80)
+plt.show()
+print(f"final angle {run.q[-1, 0, 2].item():.4f} rad (π/2 = {math.pi / 2:.4f})")
+
+# %% [markdown]
+# ## Pushing with a robot finger
+#
+# A kinematically driven finger (its velocity is the control) pushes the box; once in contact
+# the box moves with it, against ground friction.
+
+# %%
+finger = Body("finger", Polygon.box(0.1, 0.3), kind="kinematic")
+sim = box_scene(extra=(finger,))
+controls = torch.tensor([0.3, 0.0, 0.0], dtype=torch.float64).expand(60, 1, 3)
+state = sim.initial_state(q=pose(0, 0.25, 0), q_kinematic=pose(-0.7, 0.2, 0))
+run = sim.rollout(state, steps=60, controls=controls)
+fig, axes = plt.subplots(1, 2, figsize=(11, 3))
+for k in range(0, 61, 10):
+    draw_scene(
+        axes[0],
+        sim.scene,
+        q=run.q[k],
+        q_kinematic=run.q_kinematic[k],
+        alpha=0.2 + 0.8 * k / 60,
+        extent=1.5,
+    )
+axes[0].set(xlim=(-1.0, 1.2), ylim=(-0.2, 0.7), title="finger pushing a box")
+axes[1].plot(H * torch.arange(61), run.v[:, 0, 0], label="box vx")
+axes[1].axhline(0.3, color="gray", ls=":", label="finger speed")
+axes[1].set(xlabel="time (s)", ylabel="m/s")
+axes[1].legend()
+fig.tight_layout()
+fig.savefig(OUT / "01_finger.png", dpi=80)
+plt.show()
 
 # %% [markdown]
 # ## The mode-decoupled solve reproduces Lemke
 #
 # Given the mode Lemke found, `solve_mode` is a single batched linear solve, exact to round-off
-# and differentiable. Here: 2,000 random box problems (tilted, spinning, pushed).
+# and differentiable. Here: random box states (tilted, spinning, near the ground).
 
 # %%
-count = 300 if FAST else 2000
+count = 200 if FAST else 2000
+sim = box_scene()
 gen = torch.Generator().manual_seed(0)
-theta = 0.3 * (torch.rand(count, generator=gen) - 0.5)
-q = torch.stack(
-    [torch.zeros(count), 0.25 * torch.cos(theta) + 0.5 * torch.sin(theta).abs(), theta], -1
-)
-v = torch.randn(count, 3, generator=gen) * torch.tensor([1.0, 0.3, 1.0])
-problem = planar_box_problem(
-    q=q, v=v, mu=MU, corners=(0, 1, 2, 3), force=5 * torch.randn(count, 2, generator=gen)
-)
+theta = 0.3 * (torch.rand(count, generator=gen, dtype=torch.float64) - 0.5)
+height = 0.25 * torch.cos(theta) + 0.5 * torch.sin(theta).abs()
+q = torch.stack([torch.zeros(count, dtype=torch.float64), height, theta], -1).unsqueeze(1)
+v = (
+    torch.randn(count, 3, generator=gen, dtype=torch.float64) * torch.tensor([1.0, 0.3, 1.0])
+).unsqueeze(1)
+problem, _ = contact_problem(sim.scene, sim.initial_state(q=q, v=v))
 
 start = time.perf_counter()
 exact = solve(problem, "lemke")
@@ -181,10 +222,14 @@ print(f"Lemke loop: {1e6 * lemke_seconds / count:.0f} µs/problem")
 print(f"solve_mode: {1e6 * mode_seconds / count:.2f} µs/problem")
 
 # %% [markdown]
-# A wrong mode is not hidden: the linear system is still solved, but the LCP residual in
-# `status.residual` (and `is_consistent`) reports the violation.
+# A wrong mode is not hidden: the linear system is still solved, but `status.residual` (the
+# LCP's complementarity residual) and `is_consistent` report the violation.
 
 # %%
-stuck = solve_mode(problem, torch.ones_like(exact.mode))
+stuck = solve_mode(problem, torch.where(problem.slot_mask, 1, 0))
 print("residual with the right modes:", exact.status.residual.max().item())
-print("residual with every slot forced to stick:", stuck.status.residual.max().item())
+print("residual with every touching corner forced to stick:", stuck.status.residual.max().item())
+print(
+    "consistent with forced sticking:",
+    f"{is_consistent(problem, stuck).double().mean().item():.0%}",
+)

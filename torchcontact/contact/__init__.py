@@ -6,12 +6,7 @@ mode known, by one differentiable linear solve (:func:`solve_mode`).
 """
 
 from torchcontact.contact._active_set import solve_active_set, update_mode
-from torchcontact.contact._examples import (
-    BOX_CORNER_SIGNS,
-    BoxRollout,
-    planar_box_problem,
-    rollout_planar_box,
-)
+from torchcontact.contact._examples import BOX_CORNER_SIGNS, planar_box_problem
 from torchcontact.contact._lcp import (
     SEPARATED,
     SLIDING,
@@ -34,7 +29,6 @@ __all__ = [
     "SEPARATED",
     "SLIDING",
     "STICKING",
-    "BoxRollout",
     "ContactProblem",
     "LemkeOutcome",
     "LemkeResult",
@@ -48,7 +42,6 @@ __all__ = [
     "lemke",
     "planar_box_problem",
     "project_capped_simplex",
-    "rollout_planar_box",
     "solve",
     "solve_active_set",
     "solve_lemke",

@@ -2,14 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
-
 import torch
 from torch import Tensor
 
 from torchcontact.contact._problem import ContactProblem
-from torchcontact.contact._solve import Method, solve
 
 #: Corner signs of a box in its body frame, counter-clockwise from bottom-left.
 BOX_CORNER_SIGNS = ((-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0))
@@ -83,59 +79,4 @@ def planar_box_problem(
         phi=q[..., 1:2] + r[..., 1],
         mu=torch.full(r.shape[:-1], mu, dtype=dtype, device=device),
         h=h,
-    )
-
-
-@dataclass(frozen=True, eq=False)
-class BoxRollout:
-    """Trajectory of planar boxes stepped by :func:`rollout_planar_box`.
-
-    Attributes:
-        q: ``(T + 1, *B, 3)`` poses, world frame.
-        v: ``(T + 1, *B, 3)`` twists, world frame.
-        pn: ``(T, *B, K)`` normal impulses of each step.
-        mode: ``(T, *B, K)`` contact modes of each step.
-    """
-
-    q: Tensor
-    v: Tensor
-    pn: Tensor
-    mode: Tensor
-
-
-def rollout_planar_box(
-    *, q: Tensor, v: Tensor, steps: int, method: Method = "lemke", **options: Any
-) -> BoxRollout:
-    """Step planar boxes on the ground with semi-implicit Euler, ``q ← q + h v⁺``.
-
-    Args:
-        q: ``(*B, 3)`` initial poses.
-        v: ``(*B, 3)`` initial twists.
-        steps: number of steps ``T``.
-        method: contact solver (see :func:`~torchcontact.contact.solve`).
-        **options: keyword arguments of :func:`planar_box_problem` (``h`` sets the step).
-
-    Returns:
-        The :class:`BoxRollout`.
-
-    Raises:
-        RuntimeError: if the solver does not converge on some step.
-    """
-    h = options.get("h", 0.01)
-    poses, twists, impulses, modes = [q], [v], [], []
-    for step in range(steps):
-        solution = solve(planar_box_problem(q=q, v=v, **options), method)
-        if not bool(solution.status.converged.all()):
-            raise RuntimeError(f"{method} did not converge at step {step}")
-        v = solution.v_next
-        q = q + h * v
-        poses.append(q)
-        twists.append(v)
-        impulses.append(solution.pn)
-        modes.append(solution.mode)
-    return BoxRollout(
-        q=torch.stack(poses),
-        v=torch.stack(twists),
-        pn=torch.stack(impulses),
-        mode=torch.stack(modes),
     )

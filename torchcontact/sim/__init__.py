@@ -1,6 +1,7 @@
 """Planar scenes and the batched time-stepping contact simulator."""
 
 from torchcontact.sim._assemble import body_poses, contact_problem
+from torchcontact.sim._plot import draw_scene
 from torchcontact.sim._scene import Body, BodyKind, Scene, SlotGroup
 from torchcontact.sim._simulator import (
     SOLVED_BY_EXACT_MODE,
@@ -28,4 +29,5 @@ __all__ = [
     "StepResult",
     "body_poses",
     "contact_problem",
+    "draw_scene",
 ]
