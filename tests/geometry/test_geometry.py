@@ -65,3 +65,17 @@ def test_vertex_against_polygon_edge_distance_and_normal() -> None:
     torch.testing.assert_close(slots.normals[0, 1], torch.tensor([0.0, 1.0], dtype=torch.float64))
     # The far corner point is outside both edges' slabs by more than the margin.
     assert slots.active[0].tolist() == [True, True, False]
+
+
+def test_vertex_at_a_corner_takes_the_edge_facing_it() -> None:
+    """Aligned boxes side by side: the touching vertex lies on two edges of the other box.
+
+    Seen from the 1 × 0.5 box's centre the corner (−0.5, −0.25) lies more to the left than
+    below, so the left edge (normal −x) is the contact feature, not the bottom edge.
+    """
+    box = Polygon.box(1.0, 0.5).vertices.unsqueeze(0)
+    corner = torch.tensor([[[-0.5, -0.25], [-0.5, 0.25]]], dtype=torch.float64)
+    slots = polygon_slots(corner, box, margin=0.1)
+    expected = torch.tensor([[-1.0, 0.0], [-1.0, 0.0]], dtype=torch.float64)
+    torch.testing.assert_close(slots.normals[0], expected)
+    torch.testing.assert_close(slots.phi[0], torch.zeros(2, dtype=torch.float64))

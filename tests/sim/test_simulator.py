@@ -255,3 +255,36 @@ def test_gradient_with_respect_to_control_and_initial_pose() -> None:
     assert d_speed.item() == pytest.approx(fd_speed.item(), abs=1e-6)
     assert d_x0.item() == pytest.approx(fd_x0.item(), abs=1e-6)
     assert d_speed.item() > 0.1  # pushing faster moves the block further
+
+
+def test_stacked_boxes_rest_and_the_ground_carries_both() -> None:
+    """Dynamic–dynamic contact: a small box on a big one, both at rest."""
+    top = Body("top", Polygon.box(0.4, 0.2), mass=1.0)
+    sim = box_on_ground(mu=0.5, top=top)
+    q = torch.tensor([[0.0, 0.25, 0.0], [0.1, 0.6, 0.0]], dtype=torch.float64)
+    state = sim.initial_state(q=q)
+    run = sim.rollout(state, steps=50)
+    assert (run.q - q).abs().max().item() < 1e-12
+    groups = {(g.receiver, g.other): g for g in sim.scene.slot_groups}
+    ground_box = groups[(1, 0)]
+    top_on_box = groups[(2, 1)]
+    ground_impulse = run.pn[-1, ground_box.start : ground_box.start + ground_box.count].sum()
+    top_impulse = run.pn[-1, top_on_box.start : top_on_box.start + top_on_box.count].sum()
+    assert ground_impulse.item() == pytest.approx((MASS + 1.0) * G * H, abs=1e-12)
+    assert top_impulse.item() == pytest.approx(1.0 * G * H, abs=1e-12)
+
+
+def test_box_sliding_onto_a_box_decelerates_both_by_momentum_exchange() -> None:
+    """A 1 kg box hits a resting 2 kg box on frictionless ground: plastic impact, v = v0/3."""
+    hitter = Body("hitter", Polygon.box(0.5, 0.5), mass=1.0)
+    sim = box_on_ground(mu=0.0, hitter=hitter)
+    q = torch.tensor([[0.0, 0.25, 0.0], [-0.76, 0.25, 0.0]], dtype=torch.float64)
+    v = torch.tensor([[0.0, 0.0, 0.0], [1.5, 0.0, 0.0]], dtype=torch.float64)
+    run = sim.rollout(sim.initial_state(q=q, v=v), steps=10)
+    torch.testing.assert_close(
+        run.v[-1, :, 0], torch.full((2,), 0.5, dtype=torch.float64), atol=1e-12, rtol=0
+    )
+    momentum = run.v[:, 0, 0] * MASS + run.v[:, 1, 0] * 1.0
+    torch.testing.assert_close(
+        momentum, torch.full((11,), 1.5, dtype=torch.float64), atol=1e-12, rtol=0
+    )

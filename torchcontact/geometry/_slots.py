@@ -15,6 +15,9 @@ from torch import Tensor
 from torchcontact.geometry._se2 import perpendicular
 from torchcontact.geometry._shapes import HalfPlane
 
+#: Relative tolerance (of the longest edge) within which two edges are equally close.
+_TIE_TOLERANCE = 1e-9
+
 
 @dataclass(frozen=True, eq=False)
 class SlotGeometry:
@@ -62,6 +65,8 @@ def polygon_slots(vertices: Tensor, other: Tensor, *, margin: float) -> SlotGeom
     For each vertex ``p`` the closest feature is the edge ``e`` of the other polygon with the
     largest signed distance ``n_e · (p − a_e)`` (for a convex polygon this is the distance to
     the polygon when the vertex lies in the edge's slab, and its penetration depth inside).
+    Ties (a vertex at a corner) go to the edge that faces ``p`` from the other polygon's
+    vertex centroid.
 
     Args:
         vertices: ``(*B, V, 2)`` vertices of the receiving polygon, world frame.
@@ -78,7 +83,15 @@ def polygon_slots(vertices: Tensor, other: Tensor, *, margin: float) -> SlotGeom
     outward = -perpendicular(direction)  # (*B, E, 2)
     relative = vertices.unsqueeze(-2) - start.unsqueeze(-3)  # (*B, V, E, 2)
     distance = (relative * outward.unsqueeze(-3)).sum(-1)  # (*B, V, E)
-    phi, closest = distance.max(dim=-1)
+    phi = distance.amax(dim=-1)
+    # A vertex exactly at a corner is equally far from both edges there (aligned boxes side by
+    # side): take the edge that faces the vertex from the other polygon's centre.
+    tie = distance >= phi.unsqueeze(-1) - _TIE_TOLERANCE * length.squeeze(-1).amax(
+        -1, keepdim=True
+    ).unsqueeze(-1)
+    from_center = vertices - other.mean(dim=-2, keepdim=True)
+    facing = from_center @ outward.transpose(-1, -2)  # (*B, V, E)
+    closest = torch.where(tie, facing, torch.finfo(facing.dtype).min).argmax(dim=-1)
     index = closest.unsqueeze(-1).expand(*closest.shape, 2)
     normals = outward.gather(-2, index)
     along = (

@@ -190,6 +190,35 @@ class Scene:
             diagonal.extend([mass, mass, self.bodies[i].inertia_value()])
         return torch.diag(torch.stack(diagonal))
 
+    def point_force(self, q: Tensor, *, body: str, point: Tensor, force: Tensor) -> Tensor:
+        """Generalized force of a force applied at a point of a dynamic body.
+
+        Args:
+            q: ``(*B, Nd, 3)`` dynamic-body poses (world frame).
+            body: name of the dynamic body.
+            point: ``(*B, 2)`` or ``(2,)`` application point in the body's frame, metres.
+            force: ``(*B, 2)`` or ``(2,)`` force in the world frame, newtons.
+
+        Returns:
+            ``(*B, Nd, 3)`` generalized force ``(fx, fy, τ)``, with ``τ = r × F`` for the
+            world offset ``r`` of the point, on that body and zero elsewhere.
+        """
+        index = self.index(body)
+        if index not in self.dynamic:
+            raise ValueError(f"body must name a dynamic body, got {body!r}")
+        column = self.dynamic.index(index)
+        pose = q[..., column, :]
+        cos, sin = torch.cos(pose[..., 2]), torch.sin(pose[..., 2])
+        offset = torch.stack(
+            [cos * point[..., 0] - sin * point[..., 1], sin * point[..., 0] + cos * point[..., 1]],
+            dim=-1,
+        )
+        torque = offset[..., 0] * force[..., 1] - offset[..., 1] * force[..., 0]
+        wrench = torch.cat([force.expand_as(offset), torque.unsqueeze(-1)], dim=-1)
+        columns = [torch.zeros_like(wrench)] * len(self.dynamic)
+        columns[column] = wrench
+        return torch.stack(columns, dim=-2)
+
     def masses(self) -> Tensor:
         """``(Nd,)`` float64 masses of the dynamic bodies."""
         return torch.stack([self.bodies[i].mass_value() for i in self.dynamic])
