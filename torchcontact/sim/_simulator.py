@@ -11,6 +11,7 @@ from torchcontact.contact import (
     ContactProblem,
     Method,
     Solution,
+    contact_mode,
     is_consistent,
     solve,
     solve_active_set,
@@ -269,7 +270,10 @@ class Simulator:
                 codes = torch.where(reproduced, SOLVED_BY_EXACT_MODE, SOLVED_RAW)
                 solver = solver.index_put((done,), codes)
             pending = pending[~converged]
-        merged = replace(solution, mode=torch.where(flat.slot_mask, solution.mode, 0))
+        # Report canonical modes: a slot that slides at zero slip, or carries no impulse in an
+        # active mode, is labelled as the solution shows it (sticking, separated).
+        canonical = contact_mode(flat, v_next=solution.v_next.detach(), pn=solution.pn.detach())
+        merged = replace(solution, mode=canonical)
         return merged.map_tensors(lambda t: t.reshape((*batch, *t.shape[1:]))), solver.reshape(
             batch
         )

@@ -17,6 +17,7 @@ from torchcontact.states._contact_set import PARTNER_KINDS, ContactSet, PartnerK
 from torchcontact.states._contact_state import ContactFeature, ContactState, contact_states
 from torchcontact.states._examples import planar_box_contacts
 from torchcontact.states._frames import relative_pose
+from torchcontact.states._from_sim import object_contacts
 from torchcontact.states._graph import ManipulationGraph
 from torchcontact.states._grid import FeatureGrid
 from torchcontact.states._manipulation_state import (
@@ -42,6 +43,7 @@ __all__ = [
     "TactileArray",
     "contact_states",
     "manipulation_states",
+    "object_contacts",
     "planar_box_contacts",
     "rectangle_sensors",
     "relative_pose",
