@@ -43,7 +43,9 @@ def object_contacts(
     index = scene.index(body)
     if index not in scene.dynamic:
         raise ValueError(f"body must name a dynamic body, got {body!r}")
-    slots, signs, partners = [], [], []
+    slots: list[int] = []
+    signs: list[float] = []
+    partners: list[int] = []
     for group in scene.slot_groups:
         if index not in (group.receiver, group.other):
             continue
