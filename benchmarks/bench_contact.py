@@ -13,11 +13,10 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import time
-from collections.abc import Callable
 from pathlib import Path
 
 import torch
+from _timing import best_time  # benchmarks/ is on sys.path when run as a script
 
 from torchcontact.contact import ContactProblem, planar_box_problem, solve, solve_mode
 
@@ -40,17 +39,6 @@ def box_problems(count: int, seed: int = 0) -> ContactProblem:
     )
     push[:, 0] += torch.where(kind == 1, torch.rand(count, generator=gen, dtype=torch.float64), 0.0)
     return planar_box_problem(q=q, v=v, force=push, force_point=(-0.5, 0.2))
-
-
-def best_time(fn: Callable[[], object], repeats: int) -> float:
-    """Best wall time of ``repeats`` calls, in seconds (after one warm-up call)."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def main() -> None:

@@ -15,13 +15,12 @@ import argparse
 import json
 import math
 import platform
-import time
-from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 import torch
+from _timing import best_time  # benchmarks/ is on sys.path when run as a script
 
 from torchcontact.robots import load
 
@@ -67,17 +66,6 @@ def numpy_jacobian(q: np.ndarray) -> np.ndarray:
             out[b, :3, i] = np.cross(z, tip - o)
             out[b, 3:, i] = z
     return out
-
-
-def best_time(fn: Callable[[], object], repeats: int) -> float:
-    """Best wall time of ``repeats`` calls, in seconds (after one warm-up call); noise only adds."""
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 def main() -> None:

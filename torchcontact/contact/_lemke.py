@@ -9,15 +9,10 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from torchcontact.contact._lcp import (
-    contact_mode,
-    default_tolerance,
-    delassus,
-    free_constraint_velocity,
-    lcp_residual,
-)
+from torchcontact.contact._lcp import default_tolerance
+from torchcontact.contact._per_problem import solve_one_by_one
 from torchcontact.contact._problem import ContactProblem
-from torchcontact.contact._solution import Solution, SolveStatus
+from torchcontact.contact._solution import Solution
 
 FloatArray = NDArray[np.float64]
 
@@ -177,41 +172,16 @@ def solve_lemke(problem: ContactProblem, *, max_pivots: int | None = None) -> So
         The :class:`Solution`; ``status.converged`` is ``False`` where Lemke stopped on a ray or
         the pivot limit, or where the result's residual exceeds the float64 tolerance.
     """
-    batch, K, D = problem.batch_shape, problem.num_slots, problem.num_directions
-    flat = problem.to(dtype=torch.float64).flatten().map_tensors(torch.Tensor.detach)
-    with torch.no_grad():
-        W, Minv_JT = delassus(flat)
-        v_free = flat.v_free()
-        q_contact = free_constraint_velocity(flat)
-    W_np, q_np = W.numpy(), q_contact.numpy()
-    mask_np, mu_np = flat.slot_mask.numpy(), flat.mu.numpy()
-    count = W_np.shape[0]
-    impulses = np.zeros((count, K + K * D))
-    solved = np.zeros(count, dtype=bool)
-    pivots = np.zeros(count, dtype=np.int64)
-    for index in range(count):
-        slots = np.flatnonzero(mask_np[index])
-        rows = np.concatenate([slots, K + (slots[:, None] * D + np.arange(D)).ravel()])
-        A, q = _stewart_trinkle(
-            W_np[index][np.ix_(rows, rows)], q_np[index][rows], mu_np[index][slots], D
-        )
-        result = lemke(A, q, max_pivots=max_pivots)
-        impulses[index, rows] = result.z[: rows.size]
-        solved[index] = result.outcome is LemkeOutcome.SOLVED
-        pivots[index] = result.pivots
 
-    p = torch.from_numpy(impulses)
-    v_next = v_free + (Minv_JT @ p.unsqueeze(-1)).squeeze(-1)
-    pn, pt = p[:, :K], p[:, K:].unflatten(-1, (K, D))
-    residual = lcp_residual(flat, v_next=v_next, pn=pn, pt=pt)
-    scale = 1.0 + q_contact.abs().amax(dim=-1) + p.abs().amax(dim=-1) if K else 1.0 + residual
-    converged = torch.from_numpy(solved) & (residual <= default_tolerance(torch.float64) * scale)
-    mode = contact_mode(flat, v_next=v_next, pn=pn)
-    status = SolveStatus(
-        converged=converged, residual=residual, iterations=torch.from_numpy(pivots)
+    def solve_one(
+        W: FloatArray, q: FloatArray, mu: FloatArray, D: int
+    ) -> tuple[FloatArray, bool, int]:
+        result = lemke(*_stewart_trinkle(W, q, mu, D), max_pivots=max_pivots)
+        return result.z[: q.size], result.outcome is LemkeOutcome.SOLVED, result.pivots
+
+    return solve_one_by_one(
+        problem, solve_one, tolerance=default_tolerance(torch.float64), mode_atol=None
     )
-    solution = Solution(v_next=v_next, pn=pn, pt=pt, mode=mode, status=status)
-    return solution.restore_batch(batch, dtype=problem.dtype, device=problem.device)
 
 
 def _stewart_trinkle(

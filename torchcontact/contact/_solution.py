@@ -61,26 +61,26 @@ class Solution:
             status=self.status.map_tensors(fn),
         )
 
+    def combine(self, other: Solution, fn: Any) -> Solution:
+        """Apply ``fn(mine, theirs)`` field by field (status included) to two solutions."""
+        return Solution(
+            v_next=fn(self.v_next, other.v_next),
+            pn=fn(self.pn, other.pn),
+            pt=fn(self.pt, other.pt),
+            mode=fn(self.mode, other.mode),
+            status=SolveStatus(
+                converged=fn(self.status.converged, other.status.converged),
+                residual=fn(self.status.residual, other.status.residual),
+                iterations=fn(self.status.iterations, other.status.iterations),
+            ),
+        )
+
     def scatter(self, index: Tensor, update: Solution) -> Solution:
         """This solution of a flat batch ``(B,)`` with entries ``index`` replaced by ``update``.
 
         Differentiable with respect to both (``index_put`` out of place).
         """
-
-        def put(a: Tensor, b: Tensor) -> Tensor:
-            return a.index_put((index,), b.to(a.dtype))
-
-        return Solution(
-            v_next=put(self.v_next, update.v_next),
-            pn=put(self.pn, update.pn),
-            pt=put(self.pt, update.pt),
-            mode=put(self.mode, update.mode),
-            status=SolveStatus(
-                converged=put(self.status.converged, update.status.converged),
-                residual=put(self.status.residual, update.status.residual),
-                iterations=put(self.status.iterations, update.status.iterations),
-            ),
-        )
+        return self.combine(update, lambda a, b: a.index_put((index,), b.to(a.dtype)))
 
     def where(self, condition: Tensor, other: Solution) -> Solution:
         """Per entry of a flat batch ``(B,)``: this solution where ``condition``, else ``other``."""
@@ -88,17 +88,7 @@ class Solution:
         def pick(a: Tensor, b: Tensor) -> Tensor:
             return torch.where(condition.reshape(-1, *([1] * (a.dim() - 1))), a, b)
 
-        return Solution(
-            v_next=pick(self.v_next, other.v_next),
-            pn=pick(self.pn, other.pn),
-            pt=pick(self.pt, other.pt),
-            mode=pick(self.mode, other.mode),
-            status=SolveStatus(
-                converged=pick(self.status.converged, other.status.converged),
-                residual=pick(self.status.residual, other.status.residual),
-                iterations=pick(self.status.iterations, other.status.iterations),
-            ),
-        )
+        return self.combine(other, pick)
 
     def restore_batch(
         self, batch_shape: tuple[int, ...], *, dtype: torch.dtype, device: torch.device

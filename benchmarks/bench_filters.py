@@ -1,0 +1,326 @@
+"""Filter benchmarks: a batched Kalman step against a per-filter NumPy loop, and one RBPF step.
+
+Run ``python benchmarks/bench_filters.py``. Prints a markdown table and writes
+``benchmarks/results/bench_filters.json``. Single-threaded (``torch.set_num_threads(1)``), so
+the numbers compare algorithms rather than core counts. Each time is the best of several
+repeats (the least-disturbed run on a shared machine); the JSON also keeps the median.
+
+1. Kalman predict + update (with log-likelihood) of 10,000 independent filters, 6-dim state,
+   3-dim measurement, shared model matrices:
+
+   * ``torchcontact``: ``kf_predict`` + ``kf_update`` on the whole batch (float64);
+   * ``numpy loop``: the per-filter loop a FilterPy user writes (``KalmanFilter.predict`` /
+     ``update`` with the Joseph form and ``np.linalg.inv``, plus the log-likelihood), written
+     out here because FilterPy is not a dependency;
+   * ``numpy batched``: the same equations on stacked arrays (``np.matmul``, ``np.linalg``);
+   * ``torch-kf``: included only if that package is importable.
+
+2. One step of the RBPF on a ``LinearSwitchingModel`` with K = 6 modes, 6-dim state, 3-dim
+   measurement, N = 100 / 1,000 / 10,000 particles, float32 and float64, both proposals.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import os
+import platform
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from torchcontact.filters import (
+    RBPF,
+    Gaussian,
+    LinearSwitchingModel,
+    Proposal,
+    RBPFBelief,
+    kf_predict,
+    kf_update,
+)
+
+RESULTS = Path(__file__).resolve().parent / "results" / "bench_filters.json"
+N_STATE, N_OBS, N_FILTERS, N_MODES = 6, 3, 10_000, 6
+TARGET_RBPF_MS = 2.0  # per step at N = 1,000, float32
+TARGET_KF_SPEEDUP = 20.0  # over the per-filter loop
+
+
+def best_of(fn: Callable[[], object], *, repeats: int, number: int) -> tuple[float, float]:
+    """(best, median) seconds per call over ``repeats`` runs of ``number`` calls each."""
+    fn()  # warm-up
+    runs = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for _ in range(number):
+            fn()
+        runs.append((time.perf_counter() - start) / number)
+    return min(runs), statistics.median(runs)
+
+
+def kalman_model(rng: np.random.Generator) -> dict[str, np.ndarray]:
+    dt = 0.05
+    F = np.eye(N_STATE)
+    F[:3, 3:] = dt * np.eye(3)  # constant velocity in 3-D
+    A = rng.normal(size=(N_STATE, N_STATE)) * 0.05
+    return {
+        "F": F,
+        "Q": A @ A.T + 1e-4 * np.eye(N_STATE),
+        "H": np.hstack([np.eye(3), np.zeros((3, 3))]),
+        "R": 0.01 * np.eye(N_OBS),
+        "x": rng.normal(size=(N_FILTERS, N_STATE)),
+        "P": np.tile(np.eye(N_STATE), (N_FILTERS, 1, 1)),
+        "y": rng.normal(size=(N_FILTERS, N_OBS)),
+    }
+
+
+def numpy_loop_step(m: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """FilterPy's KalmanFilter.predict() + update() (Joseph form), one filter at a time."""
+    F, Q, H, R = m["F"], m["Q"], m["H"], m["R"]
+    eye = np.eye(N_STATE)
+    xs, Ps, lls = np.empty_like(m["x"]), np.empty_like(m["P"]), np.empty(N_FILTERS)
+    for i in range(N_FILTERS):
+        x = F @ m["x"][i]
+        P = F @ m["P"][i] @ F.T + Q
+        y = m["y"][i] - H @ x
+        PHT = P @ H.T
+        S = H @ PHT + R
+        SI = np.linalg.inv(S)
+        K = PHT @ SI
+        x = x + K @ y
+        IKH = eye - K @ H
+        P = IKH @ P @ IKH.T + K @ R @ K.T
+        xs[i], Ps[i] = x, P
+        lls[i] = -0.5 * (y @ SI @ y + np.linalg.slogdet(S)[1] + N_OBS * math.log(2 * math.pi))
+    return xs, Ps, lls
+
+
+def numpy_batched_step(m: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The same equations on stacked arrays."""
+    F, Q, H, R = m["F"], m["Q"], m["H"], m["R"]
+    x = m["x"] @ F.T
+    P = F @ m["P"] @ F.T + Q
+    y = m["y"] - x @ H.T
+    PHT = P @ H.T
+    S = H @ PHT + R
+    K = np.linalg.solve(S, PHT.transpose(0, 2, 1)).transpose(0, 2, 1)
+    x = x + np.einsum("bij,bj->bi", K, y)
+    IKH = np.eye(N_STATE) - K @ H
+    P = IKH @ P @ IKH.transpose(0, 2, 1) + K @ R @ K.transpose(0, 2, 1)
+    quad = np.einsum("bi,bi->b", y, np.linalg.solve(S, y[..., None])[..., 0])
+    lls = -0.5 * (quad + np.linalg.slogdet(S)[1] + N_OBS * math.log(2 * math.pi))
+    return x, P, lls
+
+
+def bench_kalman() -> list[dict[str, Any]]:
+    m = kalman_model(np.random.default_rng(0))
+    t = {k: torch.from_numpy(v) for k, v in m.items()}
+    prior = Gaussian(t["x"], t["P"])
+
+    def torch_step() -> tuple[Gaussian, torch.Tensor]:
+        g = kf_predict(prior, F=t["F"], Q=t["Q"])
+        return kf_update(g, t["y"], H=t["H"], R=t["R"])
+
+    # the three implementations agree
+    post, ll = torch_step()
+    x_ref, P_ref, ll_ref = numpy_loop_step(m)
+    assert np.allclose(post.mean.numpy(), x_ref, atol=1e-9)
+    assert np.allclose(post.cov.numpy(), P_ref, atol=1e-9)
+    assert np.allclose(ll.numpy(), ll_ref, atol=1e-9)
+    assert np.allclose(numpy_batched_step(m)[1], P_ref, atol=1e-9)
+
+    rows: list[dict[str, Any]] = []
+    loop_best, loop_median = best_of(lambda: numpy_loop_step(m), repeats=3, number=1)
+    candidates: list[tuple[str, Callable[[], object], int]] = [
+        ("torchcontact kf_predict + kf_update", torch_step, 10),
+        ("numpy batched (stacked arrays)", lambda: numpy_batched_step(m), 5),
+    ]
+    if importlib.util.find_spec("torch_kf") is not None:  # optional third-party comparison
+        candidates.append(("torch-kf", _torch_kf_step(m), 10))
+    for name, fn, number in candidates:
+        best, median = best_of(fn, repeats=5, number=number)
+        rows.append({"name": name, "best_s": best, "median_s": median})
+    rows.append(
+        {
+            "name": "numpy per-filter loop (FilterPy-style)",
+            "best_s": loop_best,
+            "median_s": loop_median,
+        }
+    )
+    for row in rows:
+        row["speedup_vs_loop"] = loop_best / float(row["best_s"])
+    return rows
+
+
+def _torch_kf_step(m: dict[str, np.ndarray]) -> Callable[[], object]:
+    """torch-kf (https://github.com/raphaelreme/torch-kf), float64, same model."""
+    from torch_kf import GaussianState, KalmanFilter
+
+    t = {k: torch.from_numpy(v) for k, v in m.items()}
+    kf = KalmanFilter(t["F"], t["H"], t["Q"], t["R"])
+    state = GaussianState(t["x"][..., None], t["P"])
+
+    def step() -> object:
+        return kf.update(kf.predict(state), t["y"][..., None])
+
+    return step
+
+
+def switching_model(dtype: torch.dtype) -> LinearSwitchingModel:
+    gen = torch.Generator().manual_seed(0)
+    K, n, m = N_MODES, N_STATE, N_OBS
+    F = torch.eye(n) + 0.05 * torch.randn(K, n, n, generator=gen, dtype=torch.float64)
+    A = 0.1 * torch.randn(K, n, n, generator=gen, dtype=torch.float64)
+    stay = 0.9
+    transition = torch.full((K, K), (1 - stay) / (K - 1), dtype=torch.float64)
+    transition.fill_diagonal_(stay)
+    return LinearSwitchingModel(
+        F=F,
+        c=0.1 * torch.randn(K, n, generator=gen, dtype=torch.float64),
+        Q=A @ A.mT + 0.01 * torch.eye(n, dtype=torch.float64),
+        H=torch.randn(K, m, n, generator=gen, dtype=torch.float64),
+        d=torch.zeros(K, m, dtype=torch.float64),
+        R=0.1 * torch.eye(m, dtype=torch.float64).expand(K, m, m).clone(),
+        transition=transition,
+        initial=torch.full((K,), 1.0 / K, dtype=torch.float64),
+    ).to(dtype)
+
+
+def _stepper(
+    rbpf: RBPF, belief: RBPFBelief, ys: torch.Tensor, gen: torch.Generator
+) -> Callable[[], RBPFBelief]:
+    """One RBPF step from a fixed belief, cycling through the measurements."""
+    count = [0]
+
+    def step() -> RBPFBelief:
+        count[0] += 1
+        return rbpf.step(belief, ys[count[0] % len(ys)], generator=gen)
+
+    return step
+
+
+def bench_rbpf() -> list[dict[str, Any]]:
+    rows: list[dict[str, Any]] = []
+    for dtype in (torch.float32, torch.float64):
+        model = switching_model(dtype)
+        prior = Gaussian(torch.zeros(N_STATE, dtype=dtype), torch.eye(N_STATE, dtype=dtype))
+        ys = torch.randn(64, N_OBS, generator=torch.Generator().manual_seed(1)).to(dtype)
+        proposals: tuple[Proposal, ...] = ("bootstrap", "all_modes")
+        for proposal in proposals:
+            for particles in (100, 1_000, 10_000):
+                rbpf = RBPF(model, particles, proposal=proposal)
+                gen = torch.Generator().manual_seed(0)
+                belief = rbpf.init(prior)
+                for y in ys[:5]:  # settle: weights, resampling, a few modes
+                    belief = rbpf.step(belief, y, generator=gen)
+                step = _stepper(rbpf, belief, ys, gen)
+                number = 20 if particles <= 1_000 else 3
+                best, median = best_of(step, repeats=5, number=number)
+                rows.append(
+                    {
+                        "proposal": proposal,
+                        "dtype": str(dtype).removeprefix("torch."),
+                        "particles": particles,
+                        "best_s": best,
+                        "median_s": median,
+                    }
+                )
+    return rows
+
+
+def _cpu_model() -> str:
+    cpuinfo = Path("/proc/cpuinfo")
+    if cpuinfo.exists():
+        for line in cpuinfo.read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
+
+
+def machine() -> dict[str, Any]:
+    return {
+        "platform": platform.platform(),
+        "cpu": _cpu_model(),
+        "cpu_count": os.cpu_count(),
+        "load_average_1min": os.getloadavg()[0] if hasattr(os, "getloadavg") else None,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "torch_threads": torch.get_num_threads(),
+    }
+
+
+def main() -> None:
+    torch.set_num_threads(1)
+    info = machine()
+    kalman = bench_kalman()
+    rbpf = bench_rbpf()
+
+    print(
+        f"# bench_filters ({info['cpu']}, {info['cpu_count']} cores, load "
+        f"{info['load_average_1min']:.1f}; torch {info['torch']}, 1 thread)\n"
+    )
+    print(
+        f"## Kalman predict + update, {N_FILTERS:,} filters, n = {N_STATE}, m = {N_OBS}, float64\n"
+    )
+    print("| implementation | time per step (ms) | per filter (µs) | speed-up vs per-filter loop |")
+    print("|---|---:|---:|---:|")
+    for row in kalman:
+        best = float(row["best_s"])
+        print(
+            f"| {row['name']} | {best * 1e3:.2f} | {best / N_FILTERS * 1e6:.3f} | "
+            f"{float(row['speedup_vs_loop']):.1f}× |"
+        )
+    if importlib.util.find_spec("torch_kf") is None:
+        print("\n(torch-kf is not installed: not compared.)")
+
+    print(f"\n## RBPF step, K = {N_MODES} modes, n = {N_STATE}, m = {N_OBS}\n")
+    print(
+        "| proposal | dtype | particles | time per step (ms) | per particle (µs) |"
+        " vs bootstrap float32 same N |"
+    )
+    print("|---|---|---:|---:|---:|---:|")
+    reference = {
+        r["particles"]: float(r["best_s"])
+        for r in rbpf
+        if r["proposal"] == "bootstrap" and r["dtype"] == "float32"
+    }
+    for row in rbpf:
+        best = float(row["best_s"])
+        particles = int(row["particles"])
+        print(
+            f"| {row['proposal']} | {row['dtype']} | {particles:,} | {best * 1e3:.3f} | "
+            f"{best / particles * 1e6:.3f} | {best / reference[particles]:.2f}× |"
+        )
+
+    rbpf_1000 = reference[1_000] * 1e3
+    kf_speedup = float(kalman[0]["speedup_vs_loop"])
+    targets = {
+        "rbpf_step_ms_N1000_float32": rbpf_1000,
+        "rbpf_target_ms": TARGET_RBPF_MS,
+        "rbpf_target_met": rbpf_1000 <= TARGET_RBPF_MS,
+        "kf_speedup_vs_loop": kf_speedup,
+        "kf_target_speedup": TARGET_KF_SPEEDUP,
+        "kf_target_met": kf_speedup >= TARGET_KF_SPEEDUP,
+    }
+    print(
+        f"\nTargets: RBPF bootstrap step at N = 1,000 float32 = {rbpf_1000:.2f} ms "
+        f"(target <= {TARGET_RBPF_MS} ms: {'met' if targets['rbpf_target_met'] else 'MISSED'}); "
+        f"batched KF = {kf_speedup:.0f}x the per-filter loop (target >= {TARGET_KF_SPEEDUP:.0f}x: "
+        f"{'met' if targets['kf_target_met'] else 'MISSED'})."
+    )
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    RESULTS.write_text(
+        json.dumps({"machine": info, "kalman": kalman, "rbpf": rbpf, "targets": targets}, indent=2)
+        + "\n"
+    )
+    print(f"\nwrote {RESULTS}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,79 @@
+"""The loop shared by the per-problem (NumPy) reference solvers, Lemke and the QP fallback."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+from torchcontact.contact._lcp import (
+    contact_mode,
+    delassus,
+    free_constraint_velocity,
+    lcp_residual,
+)
+from torchcontact.contact._problem import ContactProblem
+from torchcontact.contact._solution import Solution, SolveStatus
+
+FloatArray = NDArray[np.float64]
+
+#: Solves one problem restricted to its real slots: ``(W, q, mu, D) -> (p, ok, iterations)``
+#: with ``W (N, N)`` the Delassus matrix and ``q (N,)`` the free constraint velocities of the
+#: stacked rows ``[normals (K); friction directions (K·D)]``, ``mu (K,)``, and ``p (N,)`` the
+#: stacked impulses ``[pn; pt]``.
+SolveOne = Callable[[FloatArray, FloatArray, FloatArray, int], tuple[FloatArray, bool, int]]
+
+
+def solve_one_by_one(
+    problem: ContactProblem, solve_one: SolveOne, *, tolerance: float, mode_atol: float | None
+) -> Solution:
+    """Run ``solve_one`` on every problem of the batch (float64, NumPy) and collect a Solution.
+
+    Args:
+        problem: the contact problem, batch ``*B``, converted to float64 and detached.
+        solve_one: the per-problem solver.
+        tolerance: residual tolerance relative to ``1 + max|q| + max|p|`` for ``converged``.
+        mode_atol: tolerance of :func:`contact_mode` (``None``: its default).
+
+    Returns:
+        The :class:`Solution` in the problem's dtype and device; ``status.converged`` requires
+        both ``solve_one``'s own success and the residual test.
+    """
+    batch, K, D = problem.batch_shape, problem.num_slots, problem.num_directions
+    flat = problem.to(dtype=torch.float64).flatten().map_tensors(torch.Tensor.detach)
+    with torch.no_grad():
+        W, Minv_JT = delassus(flat)
+        v_free = flat.v_free()
+        q_contact = free_constraint_velocity(flat)
+    W_np, q_np = W.numpy(), q_contact.numpy()
+    mask_np, mu_np = flat.slot_mask.numpy(), flat.mu.numpy()
+    count = W_np.shape[0]
+    impulses = np.zeros((count, K + K * D))
+    succeeded = np.zeros(count, dtype=bool)
+    iterations = np.zeros(count, dtype=np.int64)
+    for index in range(count):
+        slots = np.flatnonzero(mask_np[index])
+        rows = np.concatenate([slots, K + (slots[:, None] * D + np.arange(D)).ravel()])
+        p, ok, used = solve_one(
+            W_np[index][np.ix_(rows, rows)], q_np[index][rows], mu_np[index][slots], D
+        )
+        impulses[index, rows] = p
+        succeeded[index], iterations[index] = ok, used
+
+    p_all = torch.from_numpy(impulses)
+    v_next = v_free + (Minv_JT @ p_all.unsqueeze(-1)).squeeze(-1)
+    pn, pt = p_all[:, :K], p_all[:, K:].unflatten(-1, (K, D))
+    residual = lcp_residual(flat, v_next=v_next, pn=pn, pt=pt)
+    if K:
+        scale = 1.0 + q_contact.abs().amax(dim=-1) + p_all.abs().amax(dim=-1)
+    else:
+        scale = torch.ones_like(residual)
+    converged = torch.from_numpy(succeeded) & (residual <= tolerance * scale)
+    status = SolveStatus(
+        converged=converged, residual=residual, iterations=torch.from_numpy(iterations)
+    )
+    mode = contact_mode(flat, v_next=v_next, pn=pn, atol=mode_atol)
+    solution = Solution(v_next=v_next, pn=pn, pt=pt, mode=mode, status=status)
+    return solution.restore_batch(batch, dtype=problem.dtype, device=problem.device)
