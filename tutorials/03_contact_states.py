@@ -359,3 +359,67 @@ print("sampled frequencies:    ", frequency.numpy().round(3))
 graph.save(OUT / "03_graph.json")
 loaded = ManipulationGraph.load(OUT / "03_graph.json")
 print("JSON round trip exact:", torch.equal(loaded.transition_tensor(), graph.transition_tensor()))
+
+# %% [markdown]
+# ## From the simulator
+#
+# The same states come out of simulated contacts. A finger pushes a tall box (0.4 × 1 m,
+# μ = 0.6) low or high: sliding needs the force μ m g, and that force tips the box once the
+# push is higher than a / μ = 0.33 m. `object_contacts` turns the simulator's slots into the
+# box's contact set (normals flipped where the finger's vertex touches the box).
+
+# %%
+from itertools import groupby
+
+from torchcontact.geometry import HalfPlane, Polygon
+from torchcontact.sim import Body, Scene, Simulator, draw_scene
+from torchcontact.states import object_contacts
+
+pushed_scene = Scene(
+    bodies=(
+        Body("ground", HalfPlane.ground(), kind="static"),
+        Body("box", Polygon.box(0.4, 1.0), mass=2.0),
+        Body("finger", Polygon.box(0.1, 0.1), kind="kinematic"),
+    ),
+    friction=0.6,
+    h=0.01,
+)
+simulator = Simulator(pushed_scene)
+steps = 60
+start = simulator.initial_state(
+    q=torch.tensor([[[0.0, 0.5, 0.0]], [[0.0, 0.5, 0.0]]], dtype=torch.float64),
+    q_kinematic=torch.tensor([[[-0.3, 0.1, 0.0]], [[-0.3, 0.9, 0.0]]], dtype=torch.float64),
+)
+push = torch.tensor([0.3, 0.0, 0.0], dtype=torch.float64).expand(steps, 2, 1, 3)
+run = simulator.rollout(start, steps=steps, controls=push)
+labels = [[], []]
+for t in range(steps):
+    box_contacts = object_contacts(
+        pushed_scene,
+        body="box",
+        q=run.q[t],
+        points=run.points[t],
+        normals=run.normals[t],
+        pn=run.pn[t],
+        mode=run.mode[t],
+        active=run.active[t],
+    )
+    for row, state in zip(labels, contact_states(box_contacts, grid), strict=True):
+        row.append(str(state))
+for name, row in zip(("low push", "high push"), labels, strict=True):
+    print(f"{name}: " + " → ".join(f"{label} ×{len(list(g))}" for label, g in groupby(row)))
+
+fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))
+for column, title in enumerate(("low push: slides", "high push: tips")):
+    for k in range(0, steps + 1, 15):
+        draw_scene(
+            axes[column],
+            pushed_scene,
+            q=run.q[k, column],
+            q_kinematic=run.q_kinematic[k, column],
+            alpha=0.2 + 0.8 * k / steps,
+            extent=1.2,
+        )
+    axes[column].set(xlim=(-0.5, 0.8), ylim=(-0.1, 1.2), title=title)
+fig.tight_layout()
+plt.show()
