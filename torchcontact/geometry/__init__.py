@@ -1,5 +1,6 @@
-"""Planar geometry: convex polygons, half-planes, rigid transforms and contact slots."""
+"""Geometry: planar polygons, half-planes, rigid transforms, quaternions and contact slots."""
 
+from torchcontact.geometry._quaternion import quat_mul
 from torchcontact.geometry._se2 import (
     cross2,
     perpendicular,
@@ -26,6 +27,7 @@ __all__ = [
     "perpendicular",
     "point_velocity",
     "polygon_slots",
+    "quat_mul",
     "rotation_matrix",
     "transform_points",
     "wrench_row",

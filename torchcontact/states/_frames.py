@@ -7,6 +7,7 @@ import math
 import torch
 from torch import Tensor
 
+from torchcontact.geometry import quat_mul
 from torchcontact.states._checks import check_float
 
 
@@ -76,21 +77,6 @@ def wrap_angle(angle: Tensor) -> Tensor:
     return angle - 2 * math.pi * torch.floor((angle + math.pi) / (2 * math.pi))
 
 
-def _quat_mul(a: Tensor, b: Tensor) -> Tensor:
-    """Hamilton product of ``(*B, 4)`` wxyz quaternions."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        -1,
-    )
-
-
 def relative_pose(object_pose: Tensor, robot_pose: Tensor) -> Tensor:
     """Pose of the robot in the object's frame, ``T_object⁻¹ T_robot``.
 
@@ -130,6 +116,6 @@ def relative_pose(object_pose: Tensor, robot_pose: Tensor) -> Tensor:
         robot_pose[..., 3:], dim=-1, keepdim=True
     )
     conjugate = q_object * q_object.new_tensor([1.0, -1.0, -1.0, -1.0])
-    q = _quat_mul(conjugate, q_robot)
+    q = quat_mul(conjugate, q_robot)
     q = torch.where(q[..., :1] < 0, -q, q)
     return torch.cat([position, q], -1)

@@ -1,0 +1,62 @@
+"""Bayesian filters: Gaussian beliefs, Kalman/extended Kalman filters on Euclidean spaces and
+pose manifolds, the Rauch–Tung–Striebel smoother, resampling, linear switching models, and the
+Rao-Blackwellized particle filter that tracks discrete contact modes with a Kalman filter per
+particle.
+
+Everything is functional (``predict(belief, ...) -> belief``), batched over leading dims and
+differentiable; float32 and float64 both work.
+"""
+
+from torchcontact.filters._ekf import Dynamics, Measurement, ekf_predict, ekf_update
+from torchcontact.filters._gaussian import Gaussian
+from torchcontact.filters._kalman import kf_predict, kf_update
+from torchcontact.filters._manifold import (
+    EUCLIDEAN,
+    SE2,
+    SE3,
+    Euclidean,
+    Manifold,
+    SE2Pose,
+    SE3Pose,
+    quat_exp,
+    quat_log,
+    wrap_angle,
+)
+from torchcontact.filters._rbpf import RBPF, Proposal, RBPFBelief
+from torchcontact.filters._resampling import (
+    ResamplingMethod,
+    effective_sample_size,
+    optimal_resample,
+    resample,
+)
+from torchcontact.filters._smoother import rts_smooth
+from torchcontact.filters._switching import LinearSwitchingModel
+
+__all__ = [
+    "EUCLIDEAN",
+    "RBPF",
+    "SE2",
+    "SE3",
+    "Dynamics",
+    "Euclidean",
+    "Gaussian",
+    "LinearSwitchingModel",
+    "Manifold",
+    "Measurement",
+    "Proposal",
+    "RBPFBelief",
+    "ResamplingMethod",
+    "SE2Pose",
+    "SE3Pose",
+    "effective_sample_size",
+    "ekf_predict",
+    "ekf_update",
+    "kf_predict",
+    "kf_update",
+    "optimal_resample",
+    "quat_exp",
+    "quat_log",
+    "resample",
+    "rts_smooth",
+    "wrap_angle",
+]

@@ -1,0 +1,248 @@
+"""Batched linear Kalman filter: predict and update with log-likelihood."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchcontact.filters import _linalg as la
+from torchcontact.filters._checks import broadcast_batch, check_mask, check_tensor
+from torchcontact.filters._gaussian import Gaussian, check_gaussian, unchecked_gaussian
+
+_LOG_2PI = math.log(2.0 * math.pi)
+
+
+def predict_core(
+    mean: Tensor, cov: Tensor, F: Tensor, c: Tensor | None, Q: Tensor, *, symmetric: bool = True
+) -> tuple[Tensor, Tensor]:
+    """Kalman prediction in the batch-last layout (see ``_linalg``).
+
+    Args:
+        mean: ``(n, *B)``; cov: ``(n, n, *B)``; F: ``(n, n, *B)``; c: ``(n, *B)`` or None;
+        Q: ``(n, n, *B)`` (all with the same number of batch dims, broadcastable).
+        symmetric: symmetrize the covariance; skip only when it goes straight into
+            :func:`update_core` with every component observed (which then reads its lower
+            triangle only).
+
+    Returns:
+        ``(F m + c, sym(F P Fᵀ + Q))``.
+    """
+    mean = la.mv(F, mean)
+    if c is not None:
+        mean = mean + c
+    cov = la.add_(la.mm_t(la.mm(F, cov), F), Q)
+    return mean, (la.symmetrize(cov) if symmetric else cov)
+
+
+def update_core(
+    mean: Tensor,
+    cov: Tensor,
+    y: Tensor,
+    H: Tensor,
+    d: Tensor | None,
+    R: Tensor,
+    observed: Tensor | None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Kalman update in the batch-last layout (see ``_linalg``), Joseph form.
+
+    Args:
+        mean: ``(n, *B)``; cov: ``(n, n, *B)``; y: ``(k, *B)`` (finite where observed);
+        H: ``(k, n, *B)``; d: ``(k, *B)`` or None; R: ``(k, k, *B)``.
+        observed: None (every component observed) or bool ``(k, *B)``: the components used.
+            Unused components are removed exactly: their rows of ``H`` are zeroed, their
+            residual is zero and their block of ``R`` is replaced by the identity, decoupled
+            from the rest, so ``S`` is block diagonal with an identity block that contributes
+            neither gain nor likelihood. An entry with no observed component is returned
+            unchanged with log-likelihood 0.
+
+    Returns:
+        ``(mean⁺ (n, *B), cov⁺ (n, n, *B), log_likelihood (*B))``; the log-likelihood is
+        non-finite where ``H P Hᵀ + R`` is not positive definite.
+    """
+    k, n = H.shape[0], H.shape[1]
+    batch_ndim = mean.ndim - 1
+    if observed is not None:
+        H = H * observed.unsqueeze(1)
+        y = torch.where(observed, y, 0.0)
+        if d is not None:
+            d = torch.where(observed, d, 0.0)
+        both = observed.unsqueeze(1) & observed.unsqueeze(0)
+        R = torch.where(both, R, la.eye(k, batch_ndim, R))
+    residual = y - la.mv(H, mean)
+    if d is not None:
+        residual = residual - d
+    # Square-root (Gram) form: with P = C Cᵀ, S = (H C)(H C)ᵀ + R and the Joseph update
+    # (I - K H) P (I - K H)ᵀ + K R Kᵀ = (C - K H C)(C - K H C)ᵀ + K R Kᵀ are sums of Gram
+    # matrices, positive semi-definite to rounding even when P spans many orders of magnitude
+    # (tiny R, huge P) in float32, where products of P itself would cancel catastrophically.
+    root = la.psd_cholesky(cov)
+    HC = la.mm(H, root)
+    HP = la.mm_t(HC, root)
+    low = la.Cholesky(la.add_(la.mm_t(HC, HC), R))  # S = L Lᵀ
+    # One forward substitution for [H P | r]: W = L⁻¹ H P and the whitened residual z = L⁻¹ r.
+    solved = low.solve(torch.cat([HP, residual.unsqueeze(1)], dim=1))
+    z = solved[:, n]
+    gain_t = low.solve_transpose(solved[:, :n])  # Kᵀ = S⁻¹ H P, (k, n, *B)
+    num_obs: float | Tensor = float(k) if observed is None else observed.sum(0).to(mean.dtype)
+    log_lik = -0.5 * ((z * z).sum(0) + low.log_det() + num_obs * _LOG_2PI)
+    new_mean = mean + la.mtv(gain_t, residual)
+    AC = la.add_(la.mtm(gain_t, HC).neg_(), root)  # (I - K H) C
+    new_cov = la.symmetrize(la.add_(la.mm_t(AC, AC), la.mm(la.mtm(gain_t, R), gain_t)))
+    if observed is not None:
+        none = ~observed.any(0)
+        new_mean = torch.where(none, mean, new_mean)
+        new_cov = torch.where(none, cov, new_cov)
+        log_lik = torch.where(none, 0.0, log_lik)
+    return new_mean, new_cov, log_lik
+
+
+def observed_components(y: Tensor, mask: Tensor | None) -> Tensor | None:
+    """The ``(*B, k)`` components of ``y`` an update uses, or None when it uses all of them.
+
+    A measurement whose components are *all* NaN means "no measurement"; ``mask`` (``True`` =
+    use) removes components. A NaN in a used component of a partial measurement is an error.
+    """
+    nan = torch.isnan(y)
+    if mask is None and not bool(nan.any()):
+        return None
+    observed = (~nan.all(-1, keepdim=True)).expand(nan.shape)
+    if mask is not None:
+        observed = observed & mask
+    if bool((nan & observed).any()):
+        raise ValueError(
+            "y: NaN in a used component of a partial measurement (a NaN measurement must be "
+            "NaN in every component; mark missing components with mask instead)"
+        )
+    return observed
+
+
+def kf_predict(g: Gaussian, *, F: Tensor, c: Tensor | None = None, Q: Tensor) -> Gaussian:
+    r"""Kalman prediction through the linear model :math:`x^+ = F x + c + w,\ w \sim N(0, Q)`.
+
+    .. math::
+
+        \mu^+ = F \mu + c, \qquad P^+ = \tfrac12 (A + A^\top),\ A = F P F^\top + Q
+
+    Model tensors broadcast against the batch of ``g`` (e.g. one ``(n, n)`` matrix for all).
+
+    Args:
+        g: belief ``(*B, n)``, Euclidean (``cov`` is ``(*B, n, n)``).
+        F: ``(*B', n, n)`` state transition matrix.
+        c: ``(*B', n)`` known offset (control input term); zero if None.
+        Q: ``(*B', n, n)`` process noise covariance (symmetric PSD).
+
+    Returns:
+        The predicted Gaussian with the broadcast batch shape.
+    """
+    g = check_gaussian(g, "g", euclidean=True)
+    n = g.dim
+    F = check_tensor(F, "F", event_shape=(n, n), like=g.mean)
+    Q = check_tensor(Q, "Q", event_shape=(n, n), like=g.mean)
+    shapes = [("g", g.batch_shape), ("F", F.shape[:-2]), ("Q", Q.shape[:-2])]
+    if c is not None:
+        c = check_tensor(c, "c", event_shape=(n,), like=g.mean)
+        shapes.append(("c", c.shape[:-1]))
+    batch = broadcast_batch(shapes)
+    nb = len(batch)
+    mean, cov = predict_core(
+        la.to_batch_last(g.mean, 1, nb),
+        la.to_batch_last(g.cov, 2, nb),
+        la.to_batch_last(F, 2, nb),
+        None if c is None else la.to_batch_last(c, 1, nb),
+        la.to_batch_last(Q, 2, nb),
+    )
+    return unchecked_gaussian(
+        la.to_batch_first(mean.expand(n, *batch), 1),
+        la.to_batch_first(cov.expand(n, n, *batch), 2),
+    )
+
+
+def kf_update(
+    g: Gaussian,
+    y: Tensor,
+    *,
+    H: Tensor,
+    d: Tensor | None = None,
+    R: Tensor,
+    mask: Tensor | None = None,
+) -> tuple[Gaussian, Tensor]:
+    r"""Kalman update with the measurement :math:`y = H x + d + v,\ v \sim N(0, R)`.
+
+    .. math::
+
+        S = H P H^\top + R = L L^\top, \quad K = P H^\top S^{-1}, \quad
+        \mu^+ = \mu + K (y - H \mu - d),
+
+        P^+ = (I - K H) P (I - K H)^\top + K R K^\top \quad\text{(Joseph form, symmetrized)},
+
+        \log p(y) = \log N(y;\ H \mu + d,\ S)
+
+    ``S`` is factored by Cholesky; the gain comes from two triangular solves (no inverse).
+    The Joseph form is evaluated in square-root form: with a (semi-definite) Cholesky factor
+    :math:`P = C C^\top`, :math:`S = (HC)(HC)^\top + R` and
+    :math:`P^+ = (C - KHC)(C - KHC)^\top + K R K^\top`, sums of Gram matrices that stay
+    positive semi-definite to rounding even when ``P`` spans more orders of magnitude than
+    float32 resolves (tiny ``R``, huge prior); ``P^+`` is then symmetrized exactly.
+
+    Missing data: an entry of ``y`` that is NaN in *every* component means "no measurement":
+    that entry is returned unchanged with log-likelihood 0. ``mask`` (``True`` = use the
+    component) ignores components exactly as if their rows were deleted from ``y``, ``H``,
+    ``d`` and ``R`` (masked components may be NaN). Any other NaN, and any inf, in ``y``
+    raises ``ValueError``.
+
+    Args:
+        g: prior belief ``(*B, n)``, Euclidean.
+        y: ``(*B', m)`` measurement.
+        H: ``(*B', m, n)`` measurement matrix.
+        d: ``(*B', m)`` known measurement offset; zero if None.
+        R: ``(*B', m, m)`` measurement noise covariance (symmetric positive definite on the
+            used components).
+        mask: ``(*B', m)`` bool, ``True`` where the component is used; all if None.
+
+    Returns:
+        ``(posterior, log_likelihood)`` with the broadcast batch shape ``*B``; the
+        log-likelihood ``(*B,)`` is differentiable w.r.t. every input.
+
+    References:
+        R. E. Kalman, "A new approach to linear filtering and prediction problems", J. Basic
+        Eng. 82(1), 1960. R. S. Bucy and P. D. Joseph, "Filtering for Stochastic Processes
+        with Applications to Guidance", 1968 (the Joseph form).
+    """
+    g = check_gaussian(g, "g", euclidean=True)
+    n = g.dim
+    if not isinstance(y, Tensor) or y.ndim < 1:
+        raise ValueError(f"y: expected a (*B, m) tensor, got {getattr(y, 'shape', y)!r}")
+    k = int(y.shape[-1])
+    y = check_tensor(y, "y", event_shape=(k,), like=g.mean, allow_nan=True)
+    H = check_tensor(H, "H", event_shape=(k, n), like=g.mean)
+    R = check_tensor(R, "R", event_shape=(k, k), like=g.mean)
+    shapes = [("g", g.batch_shape), ("y", y.shape[:-1]), ("H", H.shape[:-2]), ("R", R.shape[:-2])]
+    if d is not None:
+        d = check_tensor(d, "d", event_shape=(k,), like=g.mean)
+        shapes.append(("d", d.shape[:-1]))
+    if mask is not None:
+        mask = check_mask(mask, "mask", size=k)
+        shapes.append(("mask", mask.shape[:-1]))
+    batch = broadcast_batch(shapes)
+    nb = len(batch)
+    observed = observed_components(y, mask)
+    mean, cov, log_lik = update_core(
+        la.to_batch_last(g.mean, 1, nb),
+        la.to_batch_last(g.cov, 2, nb),
+        la.to_batch_last(y, 1, nb),
+        la.to_batch_last(H, 2, nb),
+        None if d is None else la.to_batch_last(d, 1, nb),
+        la.to_batch_last(R, 2, nb),
+        None if observed is None else la.to_batch_last(observed, 1, nb),
+    )
+    if not bool(torch.isfinite(log_lik).all()):
+        raise ValueError(
+            "R: the innovation covariance H P Hᵀ + R is not positive definite (check R and g.cov)"
+        )
+    posterior = unchecked_gaussian(
+        la.to_batch_first(mean.expand(n, *batch), 1),
+        la.to_batch_first(cov.expand(n, n, *batch), 2),
+    )
+    return posterior, log_lik.expand(batch)

@@ -1,0 +1,169 @@
+"""State manifolds for error-state (tangent-space) filtering: Euclidean, SE(2) and SE(3) poses."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Final, Protocol, runtime_checkable
+
+import torch
+from torch import Tensor
+
+from torchcontact.geometry import quat_mul
+
+
+@runtime_checkable
+class Manifold(Protocol):
+    r"""A state space with a retraction, for filters that keep covariances in a tangent space.
+
+    ``retract(x, δ)`` moves the point ``x`` by the tangent vector ``δ``; ``local(x, y)`` is its
+    inverse, the tangent vector at ``x`` pointing to ``y``:
+    ``local(x, retract(x, δ)) == δ`` for small ``δ``. A Gaussian on the manifold has its mean
+    ``x`` on the manifold and its covariance over ``δ`` (error-state form; Solà, "Quaternion
+    kinematics for the error-state Kalman filter", 2017).
+
+    Both maps take batched points ``(*B, n)`` and tangent vectors ``(*B, d)`` and must be
+    differentiable with ``torch.func`` (the EKF differentiates them with ``jacfwd``).
+    """
+
+    def tangent_dim(self, dim: int) -> int:
+        """Tangent dimension ``d`` of points of size ``dim`` (``ValueError`` if invalid)."""
+        ...
+
+    def retract(self, x: Tensor, delta: Tensor) -> Tensor:
+        """``(*B, n)``, ``(*B, d)`` → ``(*B, n)``: the point reached from ``x`` along ``delta``."""
+        ...
+
+    def local(self, x: Tensor, y: Tensor) -> Tensor:
+        """``(*B, n)``, ``(*B, n)`` → ``(*B, d)``: the tangent vector at ``x`` pointing to ``y``."""
+        ...
+
+
+@dataclass(frozen=True)
+class Euclidean:
+    """Flat space ``R^n``: ``retract(x, δ) = x + δ``, ``local(x, y) = y - x``."""
+
+    def tangent_dim(self, dim: int) -> int:
+        """``d = n``."""
+        if dim < 1:
+            raise ValueError(f"dim: a Euclidean state needs n >= 1, got {dim}")
+        return dim
+
+    def retract(self, x: Tensor, delta: Tensor) -> Tensor:
+        """``x + δ``."""
+        return x + delta
+
+    def local(self, x: Tensor, y: Tensor) -> Tensor:
+        """``y - x``."""
+        return y - x
+
+
+def wrap_angle(angle: Tensor) -> Tensor:
+    """Wrap angles to ``(-π, π]`` (differentiable, slope 1)."""
+    return torch.atan2(torch.sin(angle), torch.cos(angle))
+
+
+@dataclass(frozen=True)
+class SE2Pose:
+    """Planar pose ``(x, y, θ)`` in the world frame, optionally followed by Euclidean components.
+
+    A point is ``(*B, 3 + r)``: position, heading θ (radians), then ``r`` Euclidean components
+    (e.g. the twist ``(vx, vy, ω)``); the tangent has the same size. Perturbations are in the
+    world frame and the heading is wrapped to ``(-π, π]``:
+    ``retract(x, δ) = (p + δp, wrap(θ + δθ), v + δv)``, ``local(x, y) = (p_y - p_x,
+    wrap(θ_y - θ_x), v_y - v_x)``.
+    """
+
+    def tangent_dim(self, dim: int) -> int:
+        """``d = n`` (``n >= 3``)."""
+        if dim < 3:
+            raise ValueError(f"dim: an SE(2) pose needs n >= 3 (x, y, θ, ...), got {dim}")
+        return dim
+
+    def retract(self, x: Tensor, delta: Tensor) -> Tensor:
+        """Add ``δ`` and wrap the heading."""
+        out = x + delta
+        return torch.cat([out[..., :2], wrap_angle(out[..., 2:3]), out[..., 3:]], dim=-1)
+
+    def local(self, x: Tensor, y: Tensor) -> Tensor:
+        """Subtract and wrap the heading difference."""
+        diff = y - x
+        return torch.cat([diff[..., :2], wrap_angle(diff[..., 2:3]), diff[..., 3:]], dim=-1)
+
+
+def quat_conj(q: Tensor) -> Tensor:
+    """Conjugate (the inverse of a unit quaternion) ``(*B, 4)``."""
+    return torch.cat([q[..., :1], -q[..., 1:]], dim=-1)
+
+
+def _small(sq: Tensor) -> Tensor:
+    """Where a squared norm is small enough for the Taylor branches below to be exact in dtype."""
+    return sq < math.sqrt(torch.finfo(sq.dtype).eps)
+
+
+def quat_exp(v: Tensor) -> Tensor:
+    """Unit quaternion of the rotation vector ``v`` ``(*B, 3)`` (radians) → ``(*B, 4)``."""
+    sq = (v * v).sum(-1, keepdim=True)
+    small = _small(sq)
+    theta = torch.sqrt(torch.where(small, torch.ones_like(sq), sq))  # safe: finite gradients
+    half = 0.5 * theta
+    scale = torch.where(small, 0.5 - sq / 48.0, torch.sin(half) / theta)
+    w = torch.where(small, 1.0 - sq / 8.0, torch.cos(half))
+    return torch.cat([w, scale * v], dim=-1)
+
+
+def quat_log(q: Tensor) -> Tensor:
+    """Rotation vector ``(*B, 3)`` of the unit quaternion ``q`` ``(*B, 4)``, angle in ``[0, π]``."""
+    q = torch.where(q[..., :1] < 0, -q, q)  # shortest rotation of the double cover
+    w, v = q[..., :1], q[..., 1:]
+    sq = (v * v).sum(-1, keepdim=True)
+    small = _small(sq)
+    s = torch.sqrt(torch.where(small, torch.ones_like(sq), sq))
+    w_safe = torch.where(small, w, torch.ones_like(w))
+    scale = torch.where(
+        small, 2.0 / w_safe * (1.0 - sq / (3.0 * w_safe * w_safe)), 2.0 * torch.atan2(s, w) / s
+    )
+    return scale * v
+
+
+@dataclass(frozen=True)
+class SE3Pose:
+    """Spatial pose: position + unit quaternion ``(w, x, y, z)``, optionally followed by
+    Euclidean components.
+
+    A point is ``(*B, 7 + r)``: world-frame position ``p``, orientation ``q`` (body to world),
+    then ``r`` Euclidean components (e.g. the twist); the tangent is ``(*B, 6 + r)``:
+    ``(δp, δθ, δv)`` with ``δp`` in the world frame and ``δθ`` a rotation vector in the body
+    frame (right perturbation):
+
+        retract(x, δ) = (p + δp, q ⊗ Exp(δθ), v + δv),
+        local(x, y) = (p_y - p_x, Log(q_x⁻¹ ⊗ q_y), v_y - v_x).
+
+    ``Log`` takes the shortest rotation (``q`` and ``-q`` are the same pose); ``retract``
+    re-normalizes the quaternion.
+    """
+
+    def tangent_dim(self, dim: int) -> int:
+        """``d = n - 1`` (``n >= 7``)."""
+        if dim < 7:
+            raise ValueError(f"dim: an SE(3) pose needs n >= 7 (position, quaternion), got {dim}")
+        return dim - 1
+
+    def retract(self, x: Tensor, delta: Tensor) -> Tensor:
+        """``(p + δp, q ⊗ Exp(δθ), v + δv)``."""
+        q = quat_mul(x[..., 3:7], quat_exp(delta[..., 3:6]))
+        q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
+        return torch.cat([x[..., :3] + delta[..., :3], q, x[..., 7:] + delta[..., 6:]], dim=-1)
+
+    def local(self, x: Tensor, y: Tensor) -> Tensor:
+        """``(p_y - p_x, Log(q_x⁻¹ ⊗ q_y), v_y - v_x)``."""
+        rot = quat_log(quat_mul(quat_conj(x[..., 3:7]), y[..., 3:7]))
+        return torch.cat([y[..., :3] - x[..., :3], rot, y[..., 7:] - x[..., 7:]], dim=-1)
+
+
+EUCLIDEAN: Final = Euclidean()
+"""Flat state space (the default of every filter)."""
+SE2: Final = SE2Pose()
+"""Planar pose ``(x, y, θ, *extra)``."""
+SE3: Final = SE3Pose()
+"""Spatial pose ``(p, q_wxyz, *extra)`` with a 6-dim (+extra) tangent."""

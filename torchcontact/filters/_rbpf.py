@@ -1,0 +1,612 @@
+"""Rao-Blackwellized particle filter over the modes of a linear switching model."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import KW_ONLY, dataclass
+from typing import Literal, get_args
+
+import torch
+from torch import Tensor
+
+from torchcontact.filters import _linalg as la
+from torchcontact.filters._checks import broadcast_batch, check_mask, check_tensor
+from torchcontact.filters._gaussian import Gaussian, check_gaussian, unchecked_gaussian
+from torchcontact.filters._kalman import observed_components, predict_core, update_core
+from torchcontact.filters._resampling import (
+    RESAMPLING_METHODS,
+    ResamplingMethod,
+    normalized_cdf,
+    optimal_resample_core,
+    resample_indices,
+    search_cdf,
+)
+from torchcontact.filters._switching import LinearSwitchingModel
+
+Proposal = Literal["bootstrap", "all_modes"]
+PROPOSALS: tuple[str, ...] = get_args(Proposal)
+
+
+@dataclass(frozen=True, eq=False)
+class RBPFBelief:
+    r"""The belief of an :class:`RBPF`: ``N`` weighted particles per batch entry, each a mode
+    with a Gaussian over the continuous state,
+    :math:`p(m_t, x_t \mid y_{1:t}) \approx \sum_i w_i\, \delta_{m^i_t}(m_t)\,
+    N(x_t; \mu_i, P_i)`.
+
+    Attributes:
+        modes: ``(*B, N)`` long, the current mode :math:`m^i_t` of each particle.
+        log_weights: ``(*B, N)`` normalized log-weights (``logsumexp == 0``; ``-inf`` = weight
+            zero).
+        gaussians: the per-particle Kalman beliefs, a :class:`Gaussian` with batch ``(*B, N)``.
+        log_evidence: ``(*B,)`` running :math:`\log \hat p(y_{1:t})` (an unbiased estimate of
+            :math:`p(y_{1:t})` in linear space); ``-inf`` once a step had zero likelihood.
+        history: ``(*B, N, L + 1)`` long, the particle's mode path, newest first:
+            ``history[..., l]`` is :math:`m^i_{t-l}` (``history[..., 0] == modes``); ``-1``
+            before the first step (or a reset). Resampled with the particles.
+        degenerate: ``(*B,)`` bool, ``True`` where the last step gave every particle weight
+            zero and the entry was reset to the prior.
+        prior: the prior of :meth:`RBPF.init` (batch ``*B``), the reset target.
+        num_modes: ``K``.
+    """
+
+    modes: Tensor
+    log_weights: Tensor
+    gaussians: Gaussian
+    log_evidence: Tensor
+    history: Tensor
+    degenerate: Tensor
+    prior: Gaussian
+    num_modes: int
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        """The batch dims ``*B``."""
+        return self.modes.shape[:-1]
+
+    @property
+    def num_particles(self) -> int:
+        """``N``."""
+        return int(self.modes.shape[-1])
+
+    @property
+    def max_lag(self) -> int:
+        """``L``, the longest lag of :meth:`fixed_lag_marginals`."""
+        return int(self.history.shape[-1]) - 1
+
+    def fixed_lag_marginals(self, lag: int) -> Tensor:
+        r"""Fixed-lag smoothed mode marginals :math:`p(m_{t-\mathrm{lag}} = k \mid y_{1:t})`.
+
+        Args:
+            lag: ``0 <= lag <= L``.
+
+        Returns:
+            ``(*B, K)``; rows sum to 1, or less when ``lag`` reaches before the first step.
+        """
+        if not isinstance(lag, int) or not 0 <= lag <= self.max_lag:
+            raise ValueError(f"lag: expected an int in [0, {self.max_lag}], got {lag!r}")
+        modes = self.history[..., lag]
+        weights = torch.exp(self.log_weights) * (modes >= 0)
+        out = weights.new_zeros((*self.batch_shape, self.num_modes))
+        return out.scatter_add(-1, modes.clamp(min=0), weights)
+
+    def mode_marginals(self) -> Tensor:
+        r"""Filtered mode marginals :math:`p(m_t = k \mid y_{1:t})`, ``(*B, K)``."""
+        return self.fixed_lag_marginals(0)
+
+    def mean(self) -> Tensor:
+        r"""Mixture mean :math:`\sum_i w_i \mu_i`, ``(*B, n)``."""
+        w = torch.exp(self.log_weights).unsqueeze(-1)
+        return (w * self.gaussians.mean).sum(-2)
+
+    def cov(self) -> Tensor:
+        r"""Moment-matched mixture covariance
+        :math:`\sum_i w_i (P_i + (\mu_i - \bar\mu)(\mu_i - \bar\mu)^\top)`, ``(*B, n, n)``."""
+        w = torch.exp(self.log_weights)[..., None, None]
+        dev = self.gaussians.mean - self.mean().unsqueeze(-2)
+        spread = dev.unsqueeze(-1) * dev.unsqueeze(-2)
+        return (w * (self.gaussians.cov + spread)).sum(-3)
+
+    def ess(self) -> Tensor:
+        r"""Effective sample size :math:`1 / \sum_i w_i^2`, ``(*B,)``."""
+        return torch.exp(-torch.logsumexp(2.0 * self.log_weights, -1))
+
+
+@dataclass(frozen=True, eq=False)
+class RBPF:
+    r"""Rao-Blackwellized particle filter for a :class:`LinearSwitchingModel`.
+
+    Each particle samples the discrete mode path and carries the exact Kalman belief of the
+    continuous state given that path (Doucet, de Freitas, Murphy and Russell 2000), so only
+    the mode is sampled:
+
+    .. math::
+
+        w^i_t \propto w^i_{t-1}\,
+            \frac{p(m^i_t \mid m^i_{t-1})}{q(m^i_t \mid m^i_{t-1}, y_t)}\,
+            p(y_t \mid m^i_t, y_{1:t-1}, m^i_{1:t-1})\, e^{\ell_t(m^i_t)}
+
+    where the predictive likelihood :math:`p(y_t \mid \cdot) = N(y_t; H \mu^- + d, H P^- H^\top
+    + R)` comes from the particle's Kalman update and :math:`\ell_t` is an optional per-mode
+    log-likelihood term (e.g. tactile evidence). The evidence increment is
+    :math:`\hat p(y_t \mid y_{1:t-1}) = \sum_i w^i_{t-1} \cdot (\text{incremental weight})`,
+    so :math:`\hat p(y_{1:t})` is unbiased.
+
+    Proposals:
+
+    * ``"bootstrap"``: :math:`q = p(m_t \mid m_{t-1})` (sample the next mode from the
+      transition, weight by the predictive likelihood), then resample with ``resampling``
+      when the ESS falls below ``ess_threshold · N``.
+    * ``"all_modes"``: every particle expands into all ``K`` children, weighted by
+      transition × predictive likelihood, and the ``N · K`` children are reduced back to ``N``
+      with Fearnhead–Clifford optimal resampling (2003; see
+      :func:`~torchcontact.filters.optimal_resample`): every child of weight above the
+      threshold :math:`1/c` is kept deterministically with its weight, each other child is
+      drawn with probability :math:`c\,w`, at most once (systematic sampling over a random
+      permutation of those children, never over the particle-major layout, where equal
+      weights would hand every survivor the same mode). Every mode is evaluated at every
+      step, so low-prior modes survive whenever their weight is competitive: this is the
+      proposal of choice when rare modes (contact onset) matter. With at most ``N``
+      children of positive weight nothing is sampled and the filter is exact.
+      ``resampling`` and ``ess_threshold`` are not used.
+
+    Initialization: :meth:`init` represents :math:`p(m_0)` exactly. ``bootstrap`` spreads
+    the ``N >= K`` particles evenly over the modes (particle ``i`` has mode ``i mod K`` and
+    weight ``initial[k] / count_k``), so no mode with positive prior starts without
+    particles; ``all_modes`` gives particle ``k < K`` the mode ``k`` with weight
+    ``initial[k]`` and the other particles weight zero (they are replaced at the first step).
+
+    Degeneracy: if every particle of a batch entry gets weight zero (e.g. the extra
+    log-likelihood rules out every reachable mode), that entry is reset to the prior of
+    :meth:`init`, flagged in :attr:`RBPFBelief.degenerate`, and its ``log_evidence`` becomes
+    ``-inf`` (the model gives the data probability zero). No NaN is produced.
+
+    Differentiability: ``log_evidence``, the weights and the Gaussians are differentiable
+    w.r.t. every model tensor (``F, c, Q, H, d, R``, and ``transition`` with ``all_modes``;
+    the bootstrap proposal samples from the transition, so its weights do not depend on it)
+    and w.r.t. ``y``. Resampling is a stop-gradient: gradients flow through the Kalman
+    log-likelihoods and the weights but not through the (discrete) resampling indices, and
+    bootstrap resampling resets the weights to the constant ``1/N``. This is the usual
+    biased but low-variance estimator of :math:`\nabla \log p(y_{1:T})` (e.g. Naesseth,
+    Linderman, Ranganath and Blei, "Variational sequential Monte Carlo", AISTATS 2018).
+
+    Args:
+        model: the switching model.
+        num_particles: ``N >= K``.
+        proposal: ``"bootstrap"`` or ``"all_modes"``.
+        resampling: scheme of the bootstrap's ESS-triggered resampling (see
+            :func:`~torchcontact.filters.resample`).
+        ess_threshold: resample when ``ESS < ess_threshold · N`` (``0``: never; ``1``:
+            whenever the weights are not uniform).
+        max_lag: ``L``, the longest lag of :meth:`RBPFBelief.fixed_lag_marginals`.
+
+    References:
+        A. Doucet, N. de Freitas, K. Murphy and S. Russell, "Rao-Blackwellised particle
+        filtering for dynamic Bayesian networks", UAI 2000.
+        P. Fearnhead and P. Clifford, "On-line inference for hidden Markov models via particle
+        filters", J. R. Statist. Soc. B 65(4), 2003.
+    """
+
+    model: LinearSwitchingModel
+    num_particles: int
+    _: KW_ONLY
+    proposal: Proposal = "bootstrap"
+    resampling: ResamplingMethod = "systematic"
+    ess_threshold: float = 0.5
+    max_lag: int = 2
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.model, LinearSwitchingModel):
+            raise ValueError(f"model: expected a LinearSwitchingModel, got {type(self.model)}")
+        K = self.model.num_modes
+        if not isinstance(self.num_particles, int) or self.num_particles < K:
+            raise ValueError(
+                f"num_particles: expected an int >= K = {K}, got {self.num_particles!r}"
+            )
+        if self.proposal not in PROPOSALS:
+            raise ValueError(f"proposal: expected one of {PROPOSALS}, got {self.proposal!r}")
+        if self.resampling not in RESAMPLING_METHODS:
+            raise ValueError(
+                f"resampling: expected one of {RESAMPLING_METHODS}, got {self.resampling!r}"
+            )
+        threshold = self.ess_threshold
+        if not isinstance(threshold, int | float) or not 0.0 <= threshold <= 1.0:
+            raise ValueError(
+                f"ess_threshold: expected a number in [0, 1], got {self.ess_threshold}"
+            )
+        if not isinstance(self.max_lag, int) or self.max_lag < 0:
+            raise ValueError(f"max_lag: expected an int >= 0, got {self.max_lag!r}")
+
+    # ------------------------------------------------------------------------------------------
+    # initialization
+
+    def _initial_particles(self, batch: torch.Size) -> tuple[Tensor, Tensor, Tensor]:
+        """Modes ``(*B, N)``, normalized log-weights ``(*B, N)`` and history ``(*B, N, L+1)``
+        representing ``p(m_0) = initial`` exactly."""
+        K, N = self.model.num_modes, self.num_particles
+        device = self.model.device
+        modes = torch.arange(N, device=device) % K
+        log_prior = torch.log(self.model.initial)[modes]
+        if self.proposal == "bootstrap":
+            counts = torch.bincount(modes, minlength=K).to(self.model.dtype)
+            log_w = log_prior - torch.log(counts)[modes]
+        else:
+            log_w = torch.where(torch.arange(N, device=device) < K, log_prior, -math.inf)
+        log_w = log_w - torch.logsumexp(log_w, -1)
+        history = torch.full((N, self.max_lag + 1), -1, dtype=torch.long, device=device)
+        history[:, 0] = modes
+        return (
+            modes.expand(*batch, N),
+            log_w.expand(*batch, N),
+            history.expand(*batch, N, self.max_lag + 1),
+        )
+
+    def init(self, prior: Gaussian, batch_shape: Sequence[int] = ()) -> RBPFBelief:
+        """The belief before the first step: ``m_0 ~ initial``, ``x_0 ~ prior``.
+
+        Args:
+            prior: ``(*B', n)`` Gaussian over ``x_0`` (Euclidean), dtype of the model.
+            batch_shape: extra batch shape; the belief's batch ``*B`` is the broadcast of
+                ``prior.batch_shape`` and ``batch_shape`` (e.g. independent replicas).
+
+        Returns:
+            The initial :class:`RBPFBelief` (``log_evidence == 0``).
+        """
+        prior = check_gaussian(prior, "prior", euclidean=True)
+        model = self.model
+        if prior.dim != model.state_dim or prior.dtype != model.dtype:
+            raise ValueError(
+                f"prior: expected n = {model.state_dim} and dtype {model.dtype}, got "
+                f"n = {prior.dim} and {prior.dtype}"
+            )
+        try:
+            batch = torch.broadcast_shapes(prior.batch_shape, tuple(batch_shape))
+        except (RuntimeError, TypeError) as err:
+            raise ValueError(
+                f"batch_shape: {batch_shape!r} does not broadcast with the prior's batch "
+                f"{tuple(prior.batch_shape)}"
+            ) from err
+        n, nb = model.state_dim, len(batch)
+        prior = unchecked_gaussian(prior.mean.expand(*batch, n), prior.cov.expand(*batch, n, n))
+        modes, log_w, history = self._initial_particles(batch)
+        mean, cov = self._prior_particles(prior, nb)
+        return RBPFBelief(
+            modes=modes,
+            log_weights=log_w,
+            gaussians=unchecked_gaussian(la.to_batch_first(mean, 1), la.to_batch_first(cov, 2)),
+            log_evidence=torch.zeros(batch, dtype=model.dtype, device=model.device),
+            history=history,
+            degenerate=torch.zeros(batch, dtype=torch.bool, device=model.device),
+            prior=prior,
+            num_modes=model.num_modes,
+        )
+
+    def _prior_particles(self, prior: Gaussian, nb: int) -> tuple[Tensor, Tensor]:
+        """The prior copied to every particle, batch-last: ``(n, *B, N)``, ``(n, n, *B, N)``."""
+        N = self.num_particles
+        mean = la.to_batch_last(prior.mean.unsqueeze(-2), 1, nb + 1)
+        cov = la.to_batch_last(prior.cov.unsqueeze(-3), 2, nb + 1)
+        return (
+            mean.expand(*mean.shape[:-1], N).contiguous(),
+            cov.expand(*cov.shape[:-1], N).contiguous(),
+        )
+
+    # ------------------------------------------------------------------------------------------
+    # one step
+
+    def step(
+        self,
+        belief: RBPFBelief,
+        y: Tensor,
+        u: Tensor | int | None = None,
+        extra_log_likelihood: Tensor | None = None,
+        *,
+        mask: Tensor | None = None,
+        generator: torch.Generator | None = None,
+    ) -> RBPFBelief:
+        """Advance the belief by one step: propose modes, Kalman predict/update, reweight,
+        resample.
+
+        Args:
+            belief: the belief at ``t - 1`` (from :meth:`init` or :meth:`step`).
+            y: ``(*B', m)`` measurement at ``t``, broadcast to the batch ``*B``. NaN in every
+                component means "no measurement" (likelihood 1 for every particle).
+            u: action selecting the transition matrix of an action-dependent model: an int or a
+                ``(*B',)`` long tensor in ``[0, A)``; must be None for a ``(K, K)`` transition.
+            extra_log_likelihood: ``(*B', K)`` per-mode log-likelihood added to each particle's
+                log-weight by its new mode (``-inf`` rules a mode out; NaN and ``+inf`` are
+                errors).
+            mask: ``(*B', m)`` bool, the measurement components used (see ``kf_update``).
+            generator: random source, for reproducible runs; torch's default if None.
+
+        Returns:
+            The belief at ``t``.
+        """
+        model = self.model
+        K, m = model.num_modes, model.obs_dim
+        belief = self._check_belief(belief)
+        batch = belief.batch_shape
+        like = model.F
+        if not isinstance(y, Tensor) or y.ndim < 1:
+            raise ValueError(f"y: expected a (*B, {m}) tensor, got {getattr(y, 'shape', y)!r}")
+        y = check_tensor(y, "y", event_shape=(m,), like=like, allow_nan=True)
+        shapes: list[tuple[str, Sequence[int]]] = [("belief", batch), ("y", y.shape[:-1])]
+        if mask is not None:
+            mask = check_mask(mask, "mask", size=m)
+            shapes.append(("mask", mask.shape[:-1]))
+        extra = None
+        if extra_log_likelihood is not None:
+            extra = check_tensor(
+                extra_log_likelihood,
+                "extra_log_likelihood",
+                event_shape=(K,),
+                like=like,
+                allow_neginf=True,
+            )
+            shapes.append(("extra_log_likelihood", extra.shape[:-1]))
+        transition = self._transition(u, shapes)
+        if broadcast_batch(shapes) != batch:
+            raise ValueError(
+                f"y: inputs must broadcast to the belief's batch {tuple(batch)}, got "
+                + ", ".join(f"{name} {tuple(s)}" for name, s in shapes[1:])
+            )
+        observed = observed_components(y, mask)
+        if self.proposal == "bootstrap":
+            return self._step_bootstrap(belief, y, observed, transition, extra, generator)
+        return self._step_all_modes(belief, y, observed, transition, extra, generator)
+
+    def _kalman(
+        self,
+        mean: Tensor,
+        cov: Tensor,
+        params: Tensor,
+        y: Tensor,
+        observed: Tensor | None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Kalman predict + update of batch-last particles under per-particle model parameters.
+
+        Args:
+            mean: ``(n, *P)``; cov: ``(n, n, *P)`` (``*P`` = the particle batch dims).
+            params: ``(D, *P')`` packed ``F, c, Q, H, d, R`` (see :func:`_pack`).
+            y: ``(*B', m)`` measurement; observed: ``(*B', m)`` bool or None.
+        """
+        model = self.model
+        n, m = model.state_dim, model.obs_dim
+        F, c, Q, H, d, R = _unpack(params, n, m)
+        # update_core reads the lower triangle only, except that entries without a measurement
+        # keep the predicted covariance as it is: symmetrize only then.
+        mean, cov = predict_core(mean, cov, F, c, Q, symmetric=observed is not None)
+        extra_dims = mean.ndim - 1 - (y.ndim - 1)  # particle dims that y does not have
+        y_bl = la.to_batch_last(y.reshape(*y.shape[:-1], *(1,) * extra_dims, m), 1, mean.ndim - 1)
+        obs_bl = None
+        if observed is not None:
+            observed = observed.reshape(*observed.shape[:-1], *(1,) * extra_dims, m)
+            obs_bl = la.to_batch_last(observed, 1, mean.ndim - 1)
+        return update_core(mean, cov, y_bl, H, d, R, obs_bl)
+
+    def _step_bootstrap(
+        self,
+        belief: RBPFBelief,
+        y: Tensor,
+        observed: Tensor | None,
+        transition: Tensor,
+        extra: Tensor | None,
+        generator: torch.Generator | None,
+    ) -> RBPFBelief:
+        model, N = self.model, self.num_particles
+        batch, nb = belief.batch_shape, len(belief.batch_shape)
+        # Sample m_t ~ transition[m_{t-1}] by inverse CDF (no gradient through the draw).
+        cdf = normalized_cdf(transition.detach())  # (*B', K, K)
+        cdf = cdf.expand(*batch, *cdf.shape[-2:]).gather(
+            -2, belief.modes.unsqueeze(-1).expand(*batch, N, cdf.shape[-1])
+        )
+        draw = torch.rand(
+            (*batch, N, 1), dtype=torch.float64, device=model.device, generator=generator
+        )
+        modes = search_cdf(cdf, draw).squeeze(-1)
+        packed = _pack(model)
+        params = packed.index_select(1, modes.reshape(-1)).reshape(-1, *batch, N)
+        mean, cov, log_lik = self._kalman(
+            la.to_batch_last(belief.gaussians.mean, 1, nb + 1),
+            la.to_batch_last(belief.gaussians.cov, 2, nb + 1),
+            params,
+            y,
+            observed,
+        )
+        log_w = belief.log_weights + log_lik
+        if extra is not None:
+            log_w = log_w + extra.expand(*batch, extra.shape[-1]).gather(-1, modes)
+        log_w, log_evidence, dead = _normalize(log_w, belief.log_evidence)
+        history = torch.cat([modes.unsqueeze(-1), belief.history[..., :-1]], -1)
+        # ESS = 1 / Σ w² < threshold · N, in log space
+        resample = torch.logsumexp(2.0 * log_w, -1) > -math.log(max(self.ess_threshold * N, 1e-300))
+        resample = resample & ~dead
+        if bool(resample.any()):
+            index = resample_indices(log_w, N, self.resampling, generator)
+            identity = torch.arange(N, device=index.device)
+            index = torch.where(resample.unsqueeze(-1), index, identity)
+            modes, history, mean, cov = _gather(index, modes, history, mean, cov)
+            log_w = torch.where(resample.unsqueeze(-1), -math.log(N), log_w)
+        return self._belief(belief, modes, log_w, mean, cov, log_evidence, history, dead)
+
+    def _step_all_modes(
+        self,
+        belief: RBPFBelief,
+        y: Tensor,
+        observed: Tensor | None,
+        transition: Tensor,
+        extra: Tensor | None,
+        generator: torch.Generator | None,
+    ) -> RBPFBelief:
+        model, N, K = self.model, self.num_particles, self.model.num_modes
+        batch, nb = belief.batch_shape, len(belief.batch_shape)
+        # Children (particle i, mode k) flattened particle-major into one trailing dim N·K (a
+        # dense layout: elementwise kernels are much slower on mixed broadcast layouts).
+        child_modes = torch.arange(K, device=model.device).repeat(N)
+        params = _pack(model).index_select(1, child_modes).reshape(-1, *(1,) * nb, N * K)
+        mean = la.to_batch_last(belief.gaussians.mean, 1, nb + 1)
+        cov = la.to_batch_last(belief.gaussians.cov, 2, nb + 1)
+        mean, cov, log_lik = self._kalman(
+            mean.repeat_interleave(K, dim=-1),
+            cov.repeat_interleave(K, dim=-1),
+            params,
+            y,
+            observed,
+        )
+        log_trans = torch.log(transition)
+        log_trans = log_trans.expand(*batch, K, K).gather(
+            -2, belief.modes.unsqueeze(-1).expand(*batch, N, K)
+        )  # (*B, N, K): log p(m_t = k | m_{t-1} = modes_i)
+        log_w = belief.log_weights.unsqueeze(-1) + log_trans + log_lik.unflatten(-1, (N, K))
+        if extra is not None:
+            log_w = log_w + extra.unsqueeze(-2)
+        log_w, log_evidence, dead = _normalize(log_w.flatten(-2), belief.log_evidence)
+        index, log_w = optimal_resample_core(log_w, N, generator)
+        modes = index % K
+        parents = torch.div(index, K, rounding_mode="floor")
+        history = belief.history.gather(
+            -2, parents.unsqueeze(-1).expand(*batch, N, self.max_lag + 1)
+        )
+        history = torch.cat([modes.unsqueeze(-1), history[..., :-1]], -1)
+        mean, cov = _gather_states(index, mean, cov)
+        return self._belief(belief, modes, log_w, mean, cov, log_evidence, history, dead)
+
+    def _belief(
+        self,
+        previous: RBPFBelief,
+        modes: Tensor,
+        log_w: Tensor,
+        mean: Tensor,
+        cov: Tensor,
+        log_evidence: Tensor,
+        history: Tensor,
+        dead: Tensor,
+    ) -> RBPFBelief:
+        """Assemble the new belief, resetting the entries flagged ``dead`` to the prior."""
+        if bool(dead.any()):
+            batch = previous.batch_shape
+            modes0, log_w0, history0 = self._initial_particles(batch)
+            mean0, cov0 = self._prior_particles(previous.prior, len(batch))
+            keep = ~dead
+            modes = torch.where(keep.unsqueeze(-1), modes, modes0)
+            log_w = torch.where(keep.unsqueeze(-1), log_w, log_w0)
+            history = torch.where(keep[..., None, None], history, history0)
+            mean = torch.where(keep.unsqueeze(-1), mean, mean0)
+            cov = torch.where(keep.unsqueeze(-1), cov, cov0)
+        return RBPFBelief(
+            modes=modes,
+            log_weights=log_w,
+            gaussians=unchecked_gaussian(la.to_batch_first(mean, 1), la.to_batch_first(cov, 2)),
+            log_evidence=log_evidence,
+            history=history,
+            degenerate=dead,
+            prior=previous.prior,
+            num_modes=self.model.num_modes,
+        )
+
+    def _check_belief(self, belief: object) -> RBPFBelief:
+        model = self.model
+        if not isinstance(belief, RBPFBelief):
+            raise ValueError(f"belief: expected an RBPFBelief, got {type(belief).__name__}")
+        g = belief.gaussians
+        if (
+            belief.num_modes != model.num_modes
+            or belief.num_particles != self.num_particles
+            or belief.max_lag != self.max_lag
+            or g.dim != model.state_dim
+            or g.dtype != model.dtype
+        ):
+            raise ValueError(
+                f"belief: does not match this filter (K = {model.num_modes}, "
+                f"N = {self.num_particles}, L = {self.max_lag}, n = {model.state_dim}, "
+                f"{model.dtype}); build it with RBPF.init"
+            )
+        return belief
+
+    def _transition(
+        self, u: Tensor | int | None, shapes: list[tuple[str, Sequence[int]]]
+    ) -> Tensor:
+        """The transition matrix for the action ``u``: ``(K, K)`` or ``(*B', K, K)``."""
+        model = self.model
+        actions = model.num_actions
+        if actions is None:
+            if u is not None:
+                raise ValueError("u: this model's transition is not action-dependent; pass None")
+            return model.transition
+        if u is None:
+            raise ValueError(f"u: required for an action-dependent transition ({actions} actions)")
+        if isinstance(u, int) and not isinstance(u, bool):
+            u = torch.tensor(u, device=model.device)
+        if not isinstance(u, Tensor) or u.dtype != torch.long:
+            raise ValueError(f"u: expected an int or a long tensor, got {u!r}")
+        if bool(((u < 0) | (u >= actions)).any()):
+            raise ValueError(f"u: actions must lie in [0, {actions})")
+        shapes.append(("u", u.shape))
+        return model.transition[u]
+
+
+def _pack(model: LinearSwitchingModel) -> Tensor:
+    """``F, c, Q, H, d, R`` of every mode packed into one ``(D, K)`` tensor (one gather)."""
+    K = model.num_modes
+    return torch.cat(
+        [
+            model.F.reshape(K, -1),
+            model.c,
+            model.Q.reshape(K, -1),
+            model.H.reshape(K, -1),
+            model.d,
+            model.R.reshape(K, -1),
+        ],
+        dim=1,
+    ).T.contiguous()
+
+
+def _unpack(params: Tensor, n: int, m: int) -> list[Tensor]:
+    """Split ``(D, *P)`` packed parameters into batch-last ``F, c, Q, H, d, R`` views."""
+    batch = params.shape[1:]
+    shapes = [(n, n), (n,), (n, n), (m, n), (m,), (m, m)]
+    sizes = [math.prod(shape) for shape in shapes]
+    return [
+        part.reshape(*shape, *batch)
+        for part, shape in zip(torch.split(params, sizes), shapes, strict=True)
+    ]
+
+
+def _normalize(log_w: Tensor, log_evidence: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Normalize incremental log-weights ``(*B, M)`` and accumulate the evidence ``(*B,)``.
+
+    Returns ``(log_w, log_evidence, dead)``: where every weight is zero (``dead``), the
+    log-weights are replaced by a uniform placeholder (the caller resets the entry) and the
+    evidence becomes ``-inf``; gradients stay finite everywhere.
+    """
+    increment = torch.logsumexp(log_w, -1)
+    dead = torch.isneginf(increment)
+    if not bool(torch.isfinite(increment).all()):
+        if bool(torch.isnan(increment).any() | torch.isposinf(increment).any()):
+            raise ValueError(
+                "belief: a Kalman update produced NaN (a particle covariance is not PSD)"
+            )
+        log_w = torch.where(dead.unsqueeze(-1), 0.0, log_w)
+        increment = torch.logsumexp(log_w, -1)
+        log_evidence = torch.where(dead, -math.inf, log_evidence + increment)
+    else:
+        log_evidence = log_evidence + increment
+    return log_w - increment.unsqueeze(-1), log_evidence, dead
+
+
+def _gather_states(index: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
+    """Select particles along the last dim of batch-last states: ``index (*B, N)``."""
+    mean = mean.gather(-1, index.expand(mean.shape[0], *index.shape))
+    cov = cov.gather(-1, index.expand(cov.shape[0], cov.shape[1], *index.shape))
+    return mean, cov
+
+
+def _gather(
+    index: Tensor, modes: Tensor, history: Tensor, mean: Tensor, cov: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Resample modes ``(*B, N)``, history ``(*B, N, L+1)`` and batch-last states by ``index``."""
+    modes = modes.gather(-1, index)
+    history = history.gather(-2, index.unsqueeze(-1).expand(*history.shape))
+    mean, cov = _gather_states(index, mean, cov)
+    return modes, history, mean, cov

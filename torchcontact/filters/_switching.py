@@ -1,0 +1,165 @@
+"""Linear-Gaussian switching (jump Markov linear) models."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from typing import Any
+
+import torch
+from torch import Tensor
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class LinearSwitchingModel:
+    r"""A jump Markov linear system with ``K`` discrete modes (e.g. contact states).
+
+    With the mode :math:`m_t \in \{0, \dots, K-1\}` a Markov chain and the continuous state
+    :math:`x_t \in \mathbb R^n` linear-Gaussian given the mode:
+
+    .. math::
+
+        m_0 &\sim \mathrm{initial}, \qquad
+        P(m_t = j \mid m_{t-1} = i, u_t = a) = \mathrm{transition}[a, i, j] \\
+        x_t &= F_{m_t} x_{t-1} + c_{m_t} + w_t, \quad w_t \sim N(0, Q_{m_t}) \\
+        y_t &= H_{m_t} x_t + d_{m_t} + v_t, \quad v_t \sim N(0, R_{m_t})
+
+    (``x_0`` is the filter's prior, independent of ``m_0``). Fields are keyword-only.
+
+    Attributes:
+        F: ``(K, n, n)`` per-mode state transition matrix.
+        c: ``(K, n)`` per-mode known offset (e.g. gravity / control term of the step).
+        Q: ``(K, n, n)`` per-mode process noise covariance, symmetric PSD.
+        H: ``(K, m, n)`` per-mode measurement matrix.
+        d: ``(K, m)`` per-mode measurement offset.
+        R: ``(K, m, m)`` per-mode measurement noise covariance, symmetric positive definite.
+        transition: ``(K, K)`` row-stochastic mode transition matrix (row = from, column =
+            to), or ``(A, K, K)``: one matrix per action, selected by the filter's ``u``.
+        initial: ``(K,)`` distribution of the mode ``m_0`` before the first step.
+
+    All fields share one floating dtype and device and are validated at construction
+    (shapes, finiteness, symmetry, semi-definiteness, stochasticity); failures raise
+    ``ValueError`` naming the field. Gradients flow to every field through the filters.
+    """
+
+    F: Tensor
+    c: Tensor
+    Q: Tensor
+    H: Tensor
+    d: Tensor
+    R: Tensor
+    transition: Tensor
+    initial: Tensor
+
+    def __post_init__(self) -> None:
+        F = self.F
+        if not isinstance(F, Tensor) or not F.is_floating_point() or F.ndim != 3:
+            raise ValueError(f"F: expected a floating (K, n, n) tensor, got {_describe(F)}")
+        K, n = int(F.shape[0]), int(F.shape[1])
+        if K < 1 or n < 1 or F.shape[2] != n:
+            raise ValueError(f"F: expected shape (K, n, n) with K, n >= 1, got {tuple(F.shape)}")
+        H = self.H
+        if not isinstance(H, Tensor) or H.ndim != 3:
+            raise ValueError(f"H: expected a (K, m, n) tensor, got {_describe(H)}")
+        m = int(H.shape[1])
+        shapes: dict[str, tuple[tuple[int, ...], ...]] = {
+            "c": ((K, n),),
+            "Q": ((K, n, n),),
+            "H": ((K, m, n),),
+            "d": ((K, m),),
+            "R": ((K, m, m),),
+            "transition": ((K, K), (-1, K, K)),
+            "initial": ((K,),),
+        }
+        for name, allowed in shapes.items():
+            value = getattr(self, name)
+            if not isinstance(value, Tensor):
+                raise ValueError(f"{name}: expected a torch.Tensor, got {_describe(value)}")
+            if value.dtype != F.dtype or value.device != F.device:
+                raise ValueError(
+                    f"{name}: expected dtype {F.dtype} on {F.device} (as F), got "
+                    f"{value.dtype} on {value.device}"
+                )
+            if not any(_shape_matches(value.shape, shape) for shape in allowed):
+                expected = " or ".join(str(s).replace("-1", "A") for s in allowed)
+                raise ValueError(f"{name}: expected shape {expected}, got {tuple(value.shape)}")
+        if m < 1:
+            raise ValueError(f"H: expected m >= 1 measurement rows, got {tuple(H.shape)}")
+        for f in fields(self):
+            if not bool(torch.isfinite(getattr(self, f.name)).all()):
+                raise ValueError(f"{f.name}: contains NaN or inf")
+        eps = torch.finfo(F.dtype).eps
+        _check_covariance(self.Q.detach(), "Q", definite=False, eps=eps)
+        _check_covariance(self.R.detach(), "R", definite=True, eps=eps)
+        tol = max(1e-6, 8 * K * eps)
+        for name, probs in (("transition", self.transition.detach()), ("initial", self.initial)):
+            probs = probs.detach()
+            if bool((probs < 0).any()):
+                raise ValueError(f"{name}: probabilities must be >= 0")
+            err = float((probs.sum(-1) - 1).abs().max())
+            if err > tol:
+                raise ValueError(f"{name}: rows must sum to 1 (largest error {err:.3g})")
+
+    @property
+    def num_modes(self) -> int:
+        """Number of discrete modes ``K``."""
+        return int(self.F.shape[0])
+
+    @property
+    def state_dim(self) -> int:
+        """State size ``n``."""
+        return int(self.F.shape[1])
+
+    @property
+    def obs_dim(self) -> int:
+        """Measurement size ``m``."""
+        return int(self.H.shape[1])
+
+    @property
+    def num_actions(self) -> int | None:
+        """Number of actions ``A`` of an action-dependent transition, else None."""
+        return int(self.transition.shape[0]) if self.transition.ndim == 3 else None
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """Floating dtype of every field."""
+        return self.F.dtype
+
+    @property
+    def device(self) -> torch.device:
+        """Device of every field."""
+        return self.F.device
+
+    def to(self, *args: Any, **kwargs: Any) -> LinearSwitchingModel:
+        """``Tensor.to`` applied to every field."""
+        return LinearSwitchingModel(
+            **{f.name: getattr(self, f.name).to(*args, **kwargs) for f in fields(self)}
+        )
+
+
+def _describe(value: object) -> str:
+    if isinstance(value, Tensor):
+        return f"{value.dtype} tensor of shape {tuple(value.shape)}"
+    return type(value).__name__
+
+
+def _shape_matches(shape: torch.Size, expected: tuple[int, ...]) -> bool:
+    return len(shape) == len(expected) and all(
+        e == -1 or s == e for s, e in zip(shape, expected, strict=True)
+    )
+
+
+def _check_covariance(cov: Tensor, name: str, *, definite: bool, eps: float) -> None:
+    """Raise unless every ``(K, k, k)`` matrix is symmetric and PSD (PD if ``definite``)."""
+    scale = cov.abs().amax(dim=(-2, -1)).clamp_min(torch.finfo(cov.dtype).tiny)
+    asym = ((cov - cov.mT).abs().amax(dim=(-2, -1)) / scale).max()
+    if float(asym) > eps**0.5:
+        raise ValueError(f"{name}: not symmetric (relative asymmetry {float(asym):.3g})")
+    eig_min = (torch.linalg.eigvalsh(cov).amin(-1) / scale).min()
+    if definite:
+        _, info = torch.linalg.cholesky_ex(cov)
+        if bool((info != 0).any()) or float(eig_min) <= 0:
+            raise ValueError(f"{name}: not positive definite (min eigenvalue {float(eig_min):.3g})")
+    elif float(eig_min) < -(eps**0.5):
+        raise ValueError(
+            f"{name}: not positive semi-definite (min eigenvalue {float(eig_min):.3g})"
+        )
