@@ -88,13 +88,7 @@ def ekf_predict(
         The predicted Gaussian (batch: the broadcast of ``g``, ``u`` and ``Q``).
     """
     manifold = _check_manifold(manifold, "manifold")
-    g = check_gaussian(g, "g", euclidean=False)
-    n = g.dim
-    dim = manifold.tangent_dim(n)
-    if g.tangent_dim != dim:
-        raise ValueError(
-            f"g: cov must be ({dim}, {dim}) on this manifold, got {tuple(g.cov.shape)}"
-        )
+    g, n, dim = _check_state(g, manifold)
     Q = check_tensor(Q, "Q", event_shape=(dim, dim), like=g.mean)
     shapes = [("g", g.batch_shape), ("Q", Q.shape[:-2])]
     if u is not None:
@@ -165,13 +159,7 @@ def ekf_update(
     """
     manifold = _check_manifold(manifold, "manifold")
     measurement_manifold = _check_manifold(measurement_manifold, "measurement_manifold")
-    g = check_gaussian(g, "g", euclidean=False)
-    n = g.dim
-    dim = manifold.tangent_dim(n)
-    if g.tangent_dim != dim:
-        raise ValueError(
-            f"g: cov must be ({dim}, {dim}) on this manifold, got {tuple(g.cov.shape)}"
-        )
+    g, n, dim = _check_state(g, manifold)
     if not isinstance(y, Tensor) or y.ndim < 1:
         raise ValueError(f"y: expected a (*B, m) tensor, got {getattr(y, 'shape', y)!r}")
     m = int(y.shape[-1])
@@ -214,3 +202,14 @@ def ekf_update(
         mean.reshape(*batch, n), la.to_batch_first(cov.expand(dim, dim, *batch), 2)
     )
     return posterior, log_lik.expand(batch)
+
+
+def _check_state(g: Gaussian, manifold: Manifold) -> tuple[Gaussian, int, int]:
+    """Validate ``g`` as a state on ``manifold``: returns it, its size ``n`` and tangent size."""
+    g = check_gaussian(g, "g", euclidean=False)
+    dim = manifold.tangent_dim(g.dim)
+    if g.tangent_dim != dim:
+        raise ValueError(
+            f"g: cov must be ({dim}, {dim}) on this manifold, got {tuple(g.cov.shape)}"
+        )
+    return g, g.dim, dim
