@@ -40,17 +40,22 @@ def delassus(problem: ContactProblem) -> tuple[Tensor, Tensor]:
     return J @ Minv_JT, Minv_JT
 
 
-def free_constraint_velocity(problem: ContactProblem) -> Tensor:
+def free_constraint_velocity(problem: ContactProblem, *, v_free: Tensor) -> Tensor:
     """``(*B, K + K·D)`` constraint velocities at ``v_free``: ``J v_free + [bn + φ/h; bt]``.
 
     With ``W`` from :func:`delassus` this is the LCP data: the constraint velocities at the end
     of the step are ``W p + q`` for stacked impulses ``p = [pn; pt]``.
+
+    Args:
+        problem: the contact problem.
+        v_free: ``(*B, n)`` its contact-free velocity, ``problem.v_free()`` (passed in so
+            callers that need it too factor ``M`` once).
     """
     J = contact_jacobian(problem)
     bias = torch.cat(
         [problem.b_normal + problem.phi / problem.h, problem.b_tangent.flatten(-2, -1)], dim=-1
     )
-    return (J @ problem.v_free().unsqueeze(-1)).squeeze(-1) + bias
+    return (J @ v_free.unsqueeze(-1)).squeeze(-1) + bias
 
 
 def velocity_terms(problem: ContactProblem, v_next: Tensor) -> tuple[Tensor, Tensor]:

@@ -46,7 +46,7 @@ def solve_one_by_one(
     with torch.no_grad():
         W, Minv_JT = delassus(flat)
         v_free = flat.v_free()
-        q_contact = free_constraint_velocity(flat)
+        q_contact = free_constraint_velocity(flat, v_free=v_free)
     W_np, q_np = W.numpy(), q_contact.numpy()
     mask_np, mu_np = flat.slot_mask.numpy(), flat.mu.numpy()
     count = W_np.shape[0]
