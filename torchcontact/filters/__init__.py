@@ -7,6 +7,12 @@ Everything is functional (``predict(belief, ...) -> belief``), batched over lead
 differentiable; float32 and float64 both work.
 """
 
+from torchcontact.filters._contact_model import (
+    KinematicControl,
+    PlanarContactModel,
+    collect_modes,
+    empirical_transition,
+)
 from torchcontact.filters._ekf import Dynamics, Measurement, ekf_predict, ekf_update
 from torchcontact.filters._gaussian import Gaussian
 from torchcontact.filters._kalman import kf_predict, kf_update
@@ -22,7 +28,7 @@ from torchcontact.filters._manifold import (
     quat_log,
     wrap_angle,
 )
-from torchcontact.filters._rbpf import RBPF, Proposal, RBPFBelief
+from torchcontact.filters._rbpf import RBPF, Proposal, RBPFBelief, SwitchingModel
 from torchcontact.filters._resampling import (
     ResamplingMethod,
     effective_sample_size,
@@ -30,7 +36,7 @@ from torchcontact.filters._resampling import (
     resample,
 )
 from torchcontact.filters._smoother import rts_smooth
-from torchcontact.filters._switching import LinearSwitchingModel
+from torchcontact.filters._switching import LinearSwitchingModel, ModeDynamics
 
 __all__ = [
     "EUCLIDEAN",
@@ -40,17 +46,23 @@ __all__ = [
     "Dynamics",
     "Euclidean",
     "Gaussian",
+    "KinematicControl",
     "LinearSwitchingModel",
     "Manifold",
     "Measurement",
+    "ModeDynamics",
+    "PlanarContactModel",
     "Proposal",
     "RBPFBelief",
     "ResamplingMethod",
     "SE2Pose",
     "SE3Pose",
+    "SwitchingModel",
+    "collect_modes",
     "effective_sample_size",
     "ekf_predict",
     "ekf_update",
+    "empirical_transition",
     "kf_predict",
     "kf_update",
     "optimal_resample",

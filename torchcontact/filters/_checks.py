@@ -80,3 +80,10 @@ def broadcast_batch(shapes: Sequence[tuple[str, Sequence[int]]]) -> torch.Size:
                 )
             batch[offset + i] = current if size == 1 else size
     return torch.Size(batch)
+
+
+def describe(value: object) -> str:
+    """A short description of a value for error messages: dtype and shape of a tensor."""
+    if isinstance(value, Tensor):
+        return f"a {value.dtype} tensor of shape {tuple(value.shape)}"
+    return type(value).__name__

@@ -5,13 +5,13 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import KW_ONLY, dataclass
-from typing import Literal, get_args
+from typing import Any, Literal, Protocol, get_args, runtime_checkable
 
 import torch
 from torch import Tensor
 
 from torchcontact.filters import _linalg as la
-from torchcontact.filters._checks import broadcast_batch, check_mask, check_tensor
+from torchcontact.filters._checks import broadcast_batch, check_mask, check_tensor, describe
 from torchcontact.filters._gaussian import Gaussian, check_gaussian, unchecked_gaussian
 from torchcontact.filters._kalman import observed_components, predict_core, update_core
 from torchcontact.filters._resampling import (
@@ -22,10 +22,65 @@ from torchcontact.filters._resampling import (
     resample_indices,
     search_cdf,
 )
-from torchcontact.filters._switching import LinearSwitchingModel
+from torchcontact.filters._switching import ModeDynamics
 
 Proposal = Literal["bootstrap", "all_modes"]
 PROPOSALS: tuple[str, ...] = get_args(Proposal)
+
+
+@runtime_checkable
+class SwitchingModel(Protocol):
+    """What the :class:`RBPF` needs of a model: ``K`` modes, a mode transition, and per-mode
+    linear-Gaussian dynamics for each step.
+
+    :class:`~torchcontact.filters.LinearSwitchingModel` (constant dynamics) and
+    :class:`~torchcontact.filters.PlanarContactModel` (contact dynamics linearized at the
+    belief's mean) implement it.
+    """
+
+    @property
+    def num_modes(self) -> int:
+        """``K``."""
+        ...
+
+    @property
+    def state_dim(self) -> int:
+        """``n``."""
+        ...
+
+    @property
+    def obs_dim(self) -> int:
+        """``m``."""
+        ...
+
+    @property
+    def num_actions(self) -> int | None:
+        """``A`` for an action-dependent ``(A, K, K)`` transition, else None."""
+        ...
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """Floating dtype of the filter."""
+        ...
+
+    @property
+    def device(self) -> torch.device:
+        """Device of the filter."""
+        ...
+
+    @property
+    def transition(self) -> Tensor:
+        """``(K, K)`` or ``(A, K, K)`` row-stochastic mode transition (row = from)."""
+        ...
+
+    @property
+    def initial(self) -> Tensor:
+        """``(K,)`` distribution of the first mode."""
+        ...
+
+    def mode_dynamics(self, belief: RBPFBelief, control: Any) -> ModeDynamics:
+        """Per-mode dynamics of the step that starts from ``belief`` under ``control``."""
+        ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -115,7 +170,9 @@ class RBPFBelief:
 
 @dataclass(frozen=True, eq=False)
 class RBPF:
-    r"""Rao-Blackwellized particle filter for a :class:`LinearSwitchingModel`.
+    r"""Rao-Blackwellized particle filter for a switching model (:class:`SwitchingModel`: a
+    :class:`LinearSwitchingModel`, or a nonlinear model linearized at every step such as
+    :class:`~torchcontact.filters.PlanarContactModel`).
 
     Each particle samples the discrete mode path and carries the exact Kalman belief of the
     continuous state given that path (Doucet, de Freitas, Murphy and Russell 2000), so only
@@ -171,6 +228,12 @@ class RBPF:
     biased but low-variance estimator of :math:`\nabla \log p(y_{1:T})` (e.g. Naesseth,
     Linderman, Ranganath and Blei, "Variational sequential Monte Carlo", AISTATS 2018).
 
+    Time-varying models: every step asks the model for its per-mode dynamics
+    (:meth:`SwitchingModel.mode_dynamics`, given the belief and the step's ``control``), so a
+    nonlinear model is linearized once per mode and batch entry at the belief's mean (an
+    extended Kalman filter per particle that shares the linearization point; exact for a
+    linear model).
+
     Args:
         model: the switching model.
         num_particles: ``N >= K``.
@@ -188,7 +251,7 @@ class RBPF:
         filters", J. R. Statist. Soc. B 65(4), 2003.
     """
 
-    model: LinearSwitchingModel
+    model: SwitchingModel
     num_particles: int
     _: KW_ONLY
     proposal: Proposal = "bootstrap"
@@ -197,8 +260,11 @@ class RBPF:
     max_lag: int = 2
 
     def __post_init__(self) -> None:
-        if not isinstance(self.model, LinearSwitchingModel):
-            raise ValueError(f"model: expected a LinearSwitchingModel, got {type(self.model)}")
+        if not isinstance(self.model, SwitchingModel):
+            raise ValueError(
+                f"model: expected a switching model (e.g. LinearSwitchingModel), got "
+                f"{type(self.model).__name__}"
+            )
         K = self.model.num_modes
         if not isinstance(self.num_particles, int) or self.num_particles < K:
             raise ValueError(
@@ -302,6 +368,7 @@ class RBPF:
         u: Tensor | int | None = None,
         extra_log_likelihood: Tensor | None = None,
         *,
+        control: Any = None,
         mask: Tensor | None = None,
         generator: torch.Generator | None = None,
     ) -> RBPFBelief:
@@ -317,6 +384,9 @@ class RBPF:
             extra_log_likelihood: ``(*B', K)`` per-mode log-likelihood added to each particle's
                 log-weight by its new mode (``-inf`` rules a mode out; NaN and ``+inf`` are
                 errors).
+            control: the model's control input of this step (e.g. the finger poses and
+                twists of a :class:`~torchcontact.filters.PlanarContactModel`); None for a
+                :class:`LinearSwitchingModel`.
             mask: ``(*B', m)`` bool, the measurement components used (see ``kf_update``).
             generator: random source, for reproducible runs; torch's default if None.
 
@@ -327,7 +397,7 @@ class RBPF:
         K, m = model.num_modes, model.obs_dim
         belief = self._check_belief(belief)
         batch = belief.batch_shape
-        like = model.F
+        like = model.initial
         if not isinstance(y, Tensor) or y.ndim < 1:
             raise ValueError(f"y: expected a (*B, {m}) tensor, got {getattr(y, 'shape', y)!r}")
         y = check_tensor(y, "y", event_shape=(m,), like=like, allow_nan=True)
@@ -352,9 +422,57 @@ class RBPF:
                 + ", ".join(f"{name} {tuple(s)}" for name, s in shapes[1:])
             )
         observed = observed_components(y, mask)
+        packed = self._packed_dynamics(belief, control)
         if self.proposal == "bootstrap":
-            return self._step_bootstrap(belief, y, observed, transition, extra, generator)
-        return self._step_all_modes(belief, y, observed, transition, extra, generator)
+            return self._step_bootstrap(belief, packed, y, observed, transition, extra, generator)
+        return self._step_all_modes(belief, packed, y, observed, transition, extra, generator)
+
+    def _packed_dynamics(self, belief: RBPFBelief, control: Any) -> Tensor:
+        """The model's per-mode dynamics of this step, checked and packed: ``(*B', K, P)``
+        with ``*B'`` empty or broadcastable to the belief's batch."""
+        model = self.model
+        dynamics = model.mode_dynamics(belief, control)
+        if not isinstance(dynamics, ModeDynamics):
+            raise ValueError(
+                f"model: mode_dynamics returned {type(dynamics).__name__}, not ModeDynamics"
+            )
+        K, n, m = model.num_modes, model.state_dim, model.obs_dim
+        events = {
+            "F": (K, n, n),
+            "c": (K, n),
+            "Q": (K, n, n),
+            "H": (K, m, n),
+            "d": (K, m),
+            "R": (K, m, m),
+        }
+        values: list[Tensor] = []
+        shapes: list[tuple[str, Sequence[int]]] = [("belief", belief.batch_shape)]
+        for name, event in events.items():
+            value = getattr(dynamics, name)
+            lead = value.ndim - len(event) if isinstance(value, Tensor) else -1
+            if lead < 0 or tuple(value.shape[lead:]) != event or value.dtype != model.dtype:
+                raise ValueError(
+                    f"model: mode_dynamics().{name} must be a {model.dtype} tensor of shape "
+                    f"(*B, {', '.join(map(str, event))}), got {describe(value)}"
+                )
+            values.append(value)
+            shapes.append((f"mode_dynamics().{name}", value.shape[:lead]))
+        if broadcast_batch(shapes) != belief.batch_shape:
+            raise ValueError(
+                f"model: mode_dynamics() batch shapes {[tuple(s) for _, s in shapes[1:]]} do "
+                f"not broadcast to the belief's batch {tuple(belief.batch_shape)}"
+            )
+        batch = broadcast_batch(shapes[1:])
+        packed = torch.cat(
+            [
+                value.expand(*batch, *event).reshape(*batch, K, -1)
+                for value, event in zip(values, events.values(), strict=True)
+            ],
+            dim=-1,
+        )
+        if not bool(torch.isfinite(packed).all()):
+            raise ValueError("model: mode_dynamics() returned NaN or inf")
+        return packed
 
     def _kalman(
         self,
@@ -368,7 +486,7 @@ class RBPF:
 
         Args:
             mean: ``(n, *P)``; cov: ``(n, n, *P)`` (``*P`` = the particle batch dims).
-            params: ``(D, *P')`` packed ``F, c, Q, H, d, R`` (see :func:`_pack`).
+            params: ``(D, *P')`` packed ``F, c, Q, H, d, R`` (see :meth:`_packed_dynamics`).
             y: ``(*B', m)`` measurement; observed: ``(*B', m)`` bool or None.
         """
         model = self.model
@@ -388,6 +506,7 @@ class RBPF:
     def _step_bootstrap(
         self,
         belief: RBPFBelief,
+        packed: Tensor,
         y: Tensor,
         observed: Tensor | None,
         transition: Tensor,
@@ -405,8 +524,13 @@ class RBPF:
             (*batch, N, 1), dtype=torch.float64, device=model.device, generator=generator
         )
         modes = search_cdf(cdf, draw).squeeze(-1)
-        packed = _pack(model)
-        params = packed.index_select(1, modes.reshape(-1)).reshape(-1, *batch, N)
+        if packed.ndim == 2:  # one set of dynamics for the whole batch: one index_select
+            params = packed.T.index_select(1, modes.reshape(-1)).reshape(-1, *batch, N)
+        else:
+            params = packed.expand(*batch, *packed.shape[-2:]).gather(
+                -2, modes.unsqueeze(-1).expand(*batch, N, packed.shape[-1])
+            )
+            params = params.movedim(-1, 0)
         mean, cov, log_lik = self._kalman(
             la.to_batch_last(belief.gaussians.mean, 1, nb + 1),
             la.to_batch_last(belief.gaussians.cov, 2, nb + 1),
@@ -433,6 +557,7 @@ class RBPF:
     def _step_all_modes(
         self,
         belief: RBPFBelief,
+        packed: Tensor,
         y: Tensor,
         observed: Tensor | None,
         transition: Tensor,
@@ -443,8 +568,12 @@ class RBPF:
         batch, nb = belief.batch_shape, len(belief.batch_shape)
         # Children (particle i, mode k) flattened particle-major into one trailing dim N·K (a
         # dense layout: elementwise kernels are much slower on mixed broadcast layouts).
-        child_modes = torch.arange(K, device=model.device).repeat(N)
-        params = _pack(model).index_select(1, child_modes).reshape(-1, *(1,) * nb, N * K)
+        if packed.ndim == 2:
+            child_modes = torch.arange(K, device=model.device).repeat(N)
+            params = packed.T.index_select(1, child_modes).reshape(-1, *(1,) * nb, N * K)
+        else:
+            params = packed.unsqueeze(-3).expand(*packed.shape[:-2], N, *packed.shape[-2:])
+            params = params.reshape(*packed.shape[:-2], N * K, -1).movedim(-1, 0)
         mean = la.to_batch_last(belief.gaussians.mean, 1, nb + 1)
         cov = la.to_batch_last(belief.gaussians.cov, 2, nb + 1)
         mean, cov, log_lik = self._kalman(
@@ -544,22 +673,6 @@ class RBPF:
             raise ValueError(f"u: actions must lie in [0, {actions})")
         shapes.append(("u", u.shape))
         return model.transition[u]
-
-
-def _pack(model: LinearSwitchingModel) -> Tensor:
-    """``F, c, Q, H, d, R`` of every mode packed into one ``(D, K)`` tensor (one gather)."""
-    K = model.num_modes
-    return torch.cat(
-        [
-            model.F.reshape(K, -1),
-            model.c,
-            model.Q.reshape(K, -1),
-            model.H.reshape(K, -1),
-            model.d,
-            model.R.reshape(K, -1),
-        ],
-        dim=1,
-    ).T.contiguous()
 
 
 def _unpack(params: Tensor, n: int, m: int) -> list[Tensor]:

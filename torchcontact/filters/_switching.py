@@ -8,6 +8,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchcontact.filters._checks import describe
+
 
 @dataclass(frozen=True, eq=False, kw_only=True)
 class LinearSwitchingModel:
@@ -53,13 +55,13 @@ class LinearSwitchingModel:
     def __post_init__(self) -> None:
         F = self.F
         if not isinstance(F, Tensor) or not F.is_floating_point() or F.ndim != 3:
-            raise ValueError(f"F: expected a floating (K, n, n) tensor, got {_describe(F)}")
+            raise ValueError(f"F: expected a floating (K, n, n) tensor, got {describe(F)}")
         K, n = int(F.shape[0]), int(F.shape[1])
         if K < 1 or n < 1 or F.shape[2] != n:
             raise ValueError(f"F: expected shape (K, n, n) with K, n >= 1, got {tuple(F.shape)}")
         H = self.H
         if not isinstance(H, Tensor) or H.ndim != 3:
-            raise ValueError(f"H: expected a (K, m, n) tensor, got {_describe(H)}")
+            raise ValueError(f"H: expected a (K, m, n) tensor, got {describe(H)}")
         m = int(H.shape[1])
         shapes: dict[str, tuple[tuple[int, ...], ...]] = {
             "c": ((K, n),),
@@ -73,7 +75,7 @@ class LinearSwitchingModel:
         for name, allowed in shapes.items():
             value = getattr(self, name)
             if not isinstance(value, Tensor):
-                raise ValueError(f"{name}: expected a torch.Tensor, got {_describe(value)}")
+                raise ValueError(f"{name}: expected a torch.Tensor, got {describe(value)}")
             if value.dtype != F.dtype or value.device != F.device:
                 raise ValueError(
                     f"{name}: expected dtype {F.dtype} on {F.device} (as F), got "
@@ -129,6 +131,22 @@ class LinearSwitchingModel:
         """Device of every field."""
         return self.F.device
 
+    def mode_dynamics(self, belief: object, control: object = None) -> ModeDynamics:
+        """The per-mode dynamics and measurement of a step: the model's own (constant) fields.
+
+        Args:
+            belief: the belief being propagated (unused: the model is linear).
+            control: must be None (the model has no control input besides the action that
+                selects the transition).
+
+        Returns:
+            A :class:`ModeDynamics` without batch dims.
+        """
+        del belief
+        if control is not None:
+            raise ValueError("control: a LinearSwitchingModel takes no control input; pass None")
+        return ModeDynamics(F=self.F, c=self.c, Q=self.Q, H=self.H, d=self.d, R=self.R)
+
     def to(self, *args: Any, **kwargs: Any) -> LinearSwitchingModel:
         """``Tensor.to`` applied to every field."""
         return LinearSwitchingModel(
@@ -136,10 +154,33 @@ class LinearSwitchingModel:
         )
 
 
-def _describe(value: object) -> str:
-    if isinstance(value, Tensor):
-        return f"{value.dtype} tensor of shape {tuple(value.shape)}"
-    return type(value).__name__
+@dataclass(frozen=True, eq=False, kw_only=True)
+class ModeDynamics:
+    r"""Per-mode linear-Gaussian dynamics and measurement of one filter step.
+
+    For mode :math:`k`: :math:`x_t = F_k x_{t-1} + c_k + w`, :math:`w \sim N(0, Q_k)`, and
+    :math:`y_t = H_k x_t + d_k + v`, :math:`v \sim N(0, R_k)`. A
+    :class:`LinearSwitchingModel` has constant dynamics; a nonlinear model (e.g.
+    :class:`~torchcontact.filters.PlanarContactModel`) linearizes its dynamics at every step,
+    with leading batch dims ``*B'`` (broadcastable to the belief's batch) where the
+    linearization differs between batch entries. Fields are not validated here: the RBPF
+    checks their shapes and finiteness when it uses them.
+
+    Attributes:
+        F: ``(*B', K, n, n)``.
+        c: ``(*B', K, n)``.
+        Q: ``(*B', K, n, n)`` symmetric PSD.
+        H: ``(*B', K, m, n)``.
+        d: ``(*B', K, m)``.
+        R: ``(*B', K, m, m)`` symmetric positive definite.
+    """
+
+    F: Tensor
+    c: Tensor
+    Q: Tensor
+    H: Tensor
+    d: Tensor
+    R: Tensor
 
 
 def _shape_matches(shape: torch.Size, expected: tuple[int, ...]) -> bool:
