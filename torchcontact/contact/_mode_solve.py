@@ -141,7 +141,9 @@ def solve_mode(
         # Σ pn² + c Σ λ²/pn), which keeps every share inside its cone whenever the total is
         # inside the total cone.
         load = x[..., :K].clamp(min=0.0)
-        share = load.amax(dim=-1, keepdim=True) + torch.finfo(problem.dtype).tiny
+        # (floored at eps: with no load at all the weights only need to be finite, and a
+        # denormal floor would underflow to NaN in the backward pass)
+        share = load.amax(dim=-1, keepdim=True).clamp_min(torch.finfo(problem.dtype).eps)
         tangent_weight = _FRICTION_COST * share / (load + _MIN_LOAD_SHARE * share)
         weights = torch.cat(
             [torch.ones_like(load), tangent_weight.repeat_interleave(r, dim=-1)], -1

@@ -422,14 +422,17 @@ class RBPF:
                 + ", ".join(f"{name} {tuple(s)}" for name, s in shapes[1:])
             )
         observed = observed_components(y, mask)
-        packed = self._packed_dynamics(belief, control)
+        packed, mode_log_weight = self._packed_dynamics(belief, control)
+        if mode_log_weight is not None:
+            extra = mode_log_weight if extra is None else extra + mode_log_weight
         if self.proposal == "bootstrap":
             return self._step_bootstrap(belief, packed, y, observed, transition, extra, generator)
         return self._step_all_modes(belief, packed, y, observed, transition, extra, generator)
 
-    def _packed_dynamics(self, belief: RBPFBelief, control: Any) -> Tensor:
+    def _packed_dynamics(self, belief: RBPFBelief, control: Any) -> tuple[Tensor, Tensor | None]:
         """The model's per-mode dynamics of this step, checked and packed: ``(*B', K, P)``
-        with ``*B'`` empty or broadcastable to the belief's batch."""
+        with ``*B'`` empty or broadcastable to the belief's batch, and the optional
+        ``mode_log_weight (*B', K)``."""
         model = self.model
         dynamics = model.mode_dynamics(belief, control)
         if not isinstance(dynamics, ModeDynamics):
@@ -472,7 +475,17 @@ class RBPF:
         )
         if not bool(torch.isfinite(packed).all()):
             raise ValueError("model: mode_dynamics() returned NaN or inf")
-        return packed
+        log_weight = dynamics.mode_log_weight
+        if log_weight is not None:
+            log_weight = check_tensor(
+                log_weight,
+                "model: mode_dynamics().mode_log_weight",
+                event_shape=(K,),
+                like=model.initial,
+                allow_neginf=True,
+            )
+            broadcast_batch([*shapes[:1], ("mode_log_weight", log_weight.shape[:-1])])
+        return packed, log_weight
 
     def _kalman(
         self,

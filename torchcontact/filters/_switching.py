@@ -173,6 +173,10 @@ class ModeDynamics:
         H: ``(*B', K, m, n)``.
         d: ``(*B', K, m)``.
         R: ``(*B', K, m, m)`` symmetric positive definite.
+        mode_log_weight: optional ``(*B', K)`` log-weight added to every particle that takes
+            mode ``k`` in this step, like the step's ``extra_log_likelihood`` (e.g. the
+            contact model's penalty on modes that are physically inconsistent at the
+            linearization point); ``-inf`` rules a mode out.
     """
 
     F: Tensor
@@ -181,6 +185,7 @@ class ModeDynamics:
     H: Tensor
     d: Tensor
     R: Tensor
+    mode_log_weight: Tensor | None = None
 
 
 def _shape_matches(shape: torch.Size, expected: tuple[int, ...]) -> bool:
