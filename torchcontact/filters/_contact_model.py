@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from torchcontact.contact import ContactProblem, is_consistent, solve_mode
+from torchcontact.contact import is_consistent, solve_mode
 from torchcontact.filters._checks import describe
 from torchcontact.filters._rbpf import RBPFBelief
 from torchcontact.filters._switching import LinearSwitchingModel, ModeDynamics
@@ -285,22 +285,20 @@ class PlanarContactModel:
         batch = x.shape[:-1]
         x = x.to(torch.float64)
         q_kin, v_kin = self._control(control, batch, torch.float64)
-        # Stencil: the centre, then +ε e_j and −ε e_j for every coordinate j.
-        eps = self.fd_step
+        # Stencil: the centre, +ε e_j and −ε e_j for every coordinate j, and the centre again
+        # with the mode's contacts closed (φ = 0) for the consistency check; all in one batch.
+        eps, size = self.fd_step, 2 * n + 2
         basis = eps * torch.eye(n, dtype=torch.float64, device=x.device)
-        offsets = torch.cat([basis.new_zeros(1, n), basis, -basis])  # (1 + 2n, n)
-        points = x[..., None, None, :] + offsets  # (*B, 1, 1 + 2n, n)
-        points = points.expand(*batch, K, 1 + 2 * n, n)
-        modes = self.modes.to(x.device)[:, None, :].expand(*batch, K, 1 + 2 * n, -1)
+        zero = basis.new_zeros(1, n)
+        offsets = torch.cat([zero, basis, -basis, zero])  # (size, n)
+        points = (x[..., None, None, :] + offsets).expand(*batch, K, size, n)
+        modes = self.modes.to(x.device)[:, None, :].expand(*batch, K, size, -1)
         Nk = q_kin.shape[-2]
-        q_kin = q_kin[..., None, None, :, :].expand(*batch, K, 1 + 2 * n, Nk, 3)
-        v_kin = v_kin[..., None, None, :, :].expand(*batch, K, 1 + 2 * n, Nk, 3)
-        out, problem = self._step(points, modes, q_kin, v_kin)  # (*B, K, 1 + 2n, n)
-        centre_problem = problem.reshape(*batch, K, 1 + 2 * n)[
-            (slice(None),) * (len(batch) + 1) + (0,)
-        ]
-        consistent = self._consistent(centre_problem, modes[..., 0, :])
-        centre, plus, minus = out[..., 0, :], out[..., 1 : 1 + n, :], out[..., 1 + n :, :]
+        q_kin = q_kin[..., None, None, :, :].expand(*batch, K, size, Nk, 3)
+        v_kin = v_kin[..., None, None, :, :].expand(*batch, K, size, Nk, 3)
+        touching = (torch.arange(size, device=x.device) == size - 1).expand(*batch, K, size)
+        out, consistent = self._step(points, modes, q_kin, v_kin, touching=touching)
+        centre, plus, minus = out[..., 0, :], out[..., 1 : 1 + n, :], out[..., 1 + n : 1 + 2 * n, :]
         forward = (plus - centre.unsqueeze(-2)) / eps  # (*B, K, j, i) = ∂f_i/∂x_j
         backward = (centre.unsqueeze(-2) - minus) / eps
         central = 0.5 * (forward + backward)
@@ -310,13 +308,25 @@ class PlanarContactModel:
         one_sided = torch.where(size_f <= size_b, forward, backward)
         F = torch.where(kink, one_sided, central).mT
         c = centre - (F @ x.unsqueeze(-2).unsqueeze(-1)).squeeze(-1)
-        return F, c, consistent
+        return F, c, consistent[..., -1]
 
     def _step(
-        self, x: Tensor, modes: Tensor, q_kin: Tensor, v_kin: Tensor
-    ) -> tuple[Tensor, ContactProblem]:
-        """``f`` on batches: x ``(*P, 6)``, modes ``(*P, S)``, q/v_kin ``(*P, Nk, 3)``; also
-        the contact problems, batch ``*P``."""
+        self,
+        x: Tensor,
+        modes: Tensor,
+        q_kin: Tensor,
+        v_kin: Tensor,
+        *,
+        touching: Tensor | None = None,
+    ) -> tuple[Tensor, Tensor]:
+        """``f`` on batches: x ``(*P, 6)``, modes ``(*P, S)``, q/v_kin ``(*P, Nk, 3)``.
+
+        Also returns ``(*P,)`` bool: the step agrees with its mode (``is_consistent``). Where
+        ``touching`` ``(*P,)`` is set, the mode's active slots are taken as closed (``φ = 0``):
+        a velocity-level check, so that a mean a millimetre off a contact (whose ``φ/h``
+        correction would turn its impulse around) does not count against the mode; the
+        Kalman update handles the position.
+        """
         batch = x.shape[:-1]
         flat = x.reshape(-1, 6)
         P = flat.shape[0]
@@ -329,18 +339,16 @@ class PlanarContactModel:
         problem, _ = contact_problem(
             self.scene, state, control=v_kin.reshape(P, *v_kin.shape[-2:]).to(x.dtype)
         )
-        v_next = solve_mode(problem, state.mode).v_next
+        if touching is not None:
+            closed = touching.reshape(P, 1) & (state.mode >= 1)
+            phi = torch.where(closed, 0.0, problem.phi)
+            original = problem.phi
+            problem = problem.map_tensors(lambda t: phi if t is original else t)
+        solution = solve_mode(problem, state.mode)
+        consistent = is_consistent(problem, solution, atol=self.consistency_tolerance)
+        v_next = solution.v_next
         x_next = torch.cat([flat[:, :3] + self.scene.h * v_next, v_next], -1)
-        return x_next.reshape(*batch, 6), problem.reshape(*batch)
-
-    def _consistent(self, problem: ContactProblem, modes: Tensor) -> Tensor:
-        """``(*P,)`` bool: the step of each mode ``(*P, S)`` agrees with the mode, checked at
-        the velocity level: the mode's active slots are taken as touching (``φ = 0``), so a
-        mean a millimetre off a contact (whose ``φ/h`` correction would turn its impulse
-        around) does not count against the mode; the Kalman update handles the position."""
-        touching = replace(problem, phi=torch.where(modes >= 1, 0.0, problem.phi))
-        solution = solve_mode(touching, modes)
-        return is_consistent(touching, solution, atol=self.consistency_tolerance)
+        return x_next.reshape(*batch, 6), consistent.reshape(batch)
 
     # ------------------------------------------------------------------------------------------
     # tactile evidence

@@ -1,6 +1,7 @@
 """Planar scenes and the batched time-stepping contact simulator."""
 
 from torchcontact.sim._assemble import body_poses, contact_problem
+from torchcontact.sim._examples import pushed_box_rollout, pushed_box_scene
 from torchcontact.sim._plot import draw_scene
 from torchcontact.sim._scene import Body, BodyKind, Scene, SlotGroup
 from torchcontact.sim._simulator import (
@@ -30,4 +31,6 @@ __all__ = [
     "body_poses",
     "contact_problem",
     "draw_scene",
+    "pushed_box_rollout",
+    "pushed_box_scene",
 ]
