@@ -281,7 +281,7 @@ def bench_rbpf_contact() -> tuple[list[dict[str, Any]], dict[str, Any]]:
         model = PlanarContactModel(
             scene=scene,
             modes=table,
-            Q=torch.diag(torch.tensor([1e-8] * 3 + [1e-4] * 3, dtype=dtype)),
+            Q=torch.diag(torch.tensor([1e-6] * 3 + [1e-4] * 3, dtype=dtype)),
             R=torch.diag(sigma**2).to(dtype),
             transition=empirical_transition(ids.T, K, smoothing=0.1, dtype=dtype),
             initial=torch.full((K,), 1.0 / K, dtype=dtype),

@@ -72,7 +72,9 @@ class PlanarContactModel:
     slot would reverse the slip, a separated slot would penetrate). Such modes get the
     log-weight ``-inconsistency_penalty`` in the step (``ModeDynamics.mode_log_weight``),
     judged by :func:`~torchcontact.contact.is_consistent` with the relative tolerance
-    ``consistency_tolerance``: a soft gate, since the mean is only an estimate.
+    ``consistency_tolerance`` after closing the gaps of the mode's contacts up to
+    ``consistency_gap`` (the mean's position error): a soft gate, since the mean is only an
+    estimate.
 
     Attributes:
         scene: the planar scene; exactly one dynamic body (the tracked object), any kinematic
@@ -90,6 +92,7 @@ class PlanarContactModel:
         inconsistency_penalty: log-weight penalty (nats, ``>= 0``; ``inf`` rules such modes
             out) of modes inconsistent at the linearization point; ``0`` disables the gate.
         consistency_tolerance: relative tolerance of the consistency check.
+        consistency_gap: gaps (metres) of a mode's contacts that the check treats as closed.
 
     Construction validates every field and raises ``ValueError`` naming the field at fault.
     """
@@ -103,6 +106,7 @@ class PlanarContactModel:
     fd_step: float = 3e-5
     inconsistency_penalty: float = 5.0
     consistency_tolerance: float = 0.05
+    consistency_gap: float = 0.003
 
     def __post_init__(self) -> None:
         scene = self.scene
@@ -135,6 +139,8 @@ class PlanarContactModel:
             raise ValueError(
                 f"inconsistency_penalty: expected a number >= 0, got {self.inconsistency_penalty!r}"
             )
+        if not self.consistency_gap >= 0.0:
+            raise ValueError(f"consistency_gap: expected >= 0, got {self.consistency_gap!r}")
         if not 0.0 < self.consistency_tolerance < 1.0:
             raise ValueError(
                 f"consistency_tolerance: expected a number in (0, 1), got "
@@ -322,10 +328,10 @@ class PlanarContactModel:
         """``f`` on batches: x ``(*P, 6)``, modes ``(*P, S)``, q/v_kin ``(*P, Nk, 3)``.
 
         Also returns ``(*P,)`` bool: the step agrees with its mode (``is_consistent``). Where
-        ``touching`` ``(*P,)`` is set, the mode's active slots are taken as closed (``φ = 0``):
-        a velocity-level check, so that a mean a millimetre off a contact (whose ``φ/h``
-        correction would turn its impulse around) does not count against the mode; the
-        Kalman update handles the position.
+        ``touching`` ``(*P,)`` is set, gaps of the mode's active slots within
+        ``±consistency_gap`` are taken as closed: a mean a millimetre off a contact (whose
+        ``φ/h`` correction would turn its impulse around) does not count against the mode,
+        while a contact held across a wider gap (a box "stuck" to a finger it has left) does.
         """
         batch = x.shape[:-1]
         flat = x.reshape(-1, 6)
@@ -341,7 +347,9 @@ class PlanarContactModel:
         )
         if touching is not None:
             closed = touching.reshape(P, 1) & (state.mode >= 1)
-            phi = torch.where(closed, 0.0, problem.phi)
+            dead_zone = self.consistency_gap
+            phi = problem.phi - problem.phi.clamp(-dead_zone, dead_zone)
+            phi = torch.where(closed, phi, problem.phi)
             original = problem.phi
             problem = problem.map_tensors(lambda t: phi if t is original else t)
         solution = solve_mode(problem, state.mode)
