@@ -1,0 +1,559 @@
+"""Dyna-Q: tabular Q-learning that learns a manipulation graph and plans with it."""
+
+from __future__ import annotations
+
+import copy
+import json
+from collections.abc import Hashable, Mapping
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchcontact.rl._checks import check_int, check_real
+from torchcontact.states import ContactState, ManipulationGraph, ManipulationState, StateTable
+
+_FORMAT = "torchcontact.DynaQ"
+
+Sampler = Literal["index", "graph"]
+
+
+def _placeholder(index: int) -> ManipulationState:
+    """The graph-side stand-in of the non-manipulation state with id ``index``."""
+    return ManipulationState((index,), ContactState())
+
+
+class DynaQ:
+    r"""Tabular Dyna-Q over hashable states, with a :class:`ManipulationGraph` as its model.
+
+    Every real transition ``(s, a, r, s′)`` passed to :meth:`observe` does three things:
+
+    1. **direct RL**: the Q-learning update
+       ``Q(s, a) ← Q(s, a) + α (r + γ max_b Q(s′, b) − Q(s, a))`` (no bootstrap when
+       ``terminal``);
+    2. **model learning**: the transition is recorded in :attr:`graph`, whose counts give the
+       empirical model ``P(s′ | s, a) = N(s, a, s′) / N(s, a)`` and whose reward sums give the
+       mean rewards ``R(s, a, s′)``;
+    3. **planning**: ``planning_steps`` more Q-learning updates on simulated transitions: a
+       previously observed pair ``(s, a)`` uniformly at random, ``s′ ~ P(· | s, a)`` and
+       ``r = R(s, a, s′)`` from the model.
+
+    All ``n`` planning samples of a step are drawn at once; the updates are then applied one
+    after the other (each sees the previous ones, as in sequential Dyna-Q). A state that was
+    once reached with ``terminal=True`` counts as terminal (value 0) in planning.
+
+    **States and ids.** States get integer ids in first-seen order; :attr:`states` is the
+    id → state table and row ``i`` of :meth:`q_table` belongs to ``states[i]``. The graph uses
+    the same ids: a :class:`~torchcontact.states.ManipulationState` is stored in the graph as
+    itself (so ``graph.states == agent.states`` and the graph is directly the filter's mode
+    table), any other hashable state as the stand-in ``ManipulationState((id,), ContactState())``.
+    Unknown states have all-zero Q values.
+
+    **Samplers.** ``sampler="index"`` (default) keeps an incremental sparse index of the
+    graph's counts (``O(1)`` per observation, ``O(deg)`` per planning sample);
+    ``sampler="graph"`` draws with :meth:`ManipulationGraph.sample_ids`, which rebuilds the
+    dense ``(A, K, K)`` model after every observation (``O(A K²)`` per step). Both sample the
+    same distribution but consume randomness differently.
+
+    **Randomness.** Exploration, tie-breaking and planning use the agent's own generators,
+    seeded by ``seed``: two agents with the same seed and the same inputs behave identically,
+    and :meth:`state_dict` / :meth:`load_state_dict` resume a run exactly.
+
+    Args:
+        num_actions: number of actions ``A >= 1``; actions are the ints ``0 … A − 1``.
+        alpha: step size in ``(0, 1]``.
+        gamma: discount factor in ``[0, 1]``.
+        epsilon: exploration probability of :meth:`act` in ``[0, 1]``.
+        planning_steps: planning updates per real transition, ``>= 0`` (0 is Q-learning).
+        seed: seed of the agent's random generators, an int ``>= 0``.
+        sampler: ``"index"`` or ``"graph"``, see above.
+
+    Raises:
+        ValueError: an argument is out of range (the message names it).
+
+    References:
+        R. S. Sutton, "Dyna, an integrated architecture for learning, planning, and reacting",
+        SIGART Bull. 2(4), 1991. R. S. Sutton and A. G. Barto, "Reinforcement Learning: An
+        Introduction", 2nd ed., Section 8.2 (tabular Dyna-Q).
+    """
+
+    def __init__(
+        self,
+        num_actions: int,
+        alpha: float = 0.1,
+        gamma: float = 0.95,
+        epsilon: float = 0.1,
+        planning_steps: int = 10,
+        seed: int = 0,
+        *,
+        sampler: Sampler = "index",
+    ) -> None:
+        self._num_actions = check_int("num_actions", num_actions, low=1)
+        self.alpha = alpha
+        self._gamma = check_real("gamma", gamma, low=0.0, high=1.0)
+        self.epsilon = epsilon
+        self.planning_steps = planning_steps
+        self._seed = check_int("seed", seed, low=0)
+        if sampler not in ("index", "graph"):
+            raise ValueError(f"sampler must be 'index' or 'graph', got {sampler!r}")
+        self._sampler: Sampler = sampler
+        self._rng = np.random.default_rng(self._seed)
+        self._torch_rng = torch.Generator().manual_seed(self._seed)
+        self._reset_tables()
+
+    def _reset_tables(self) -> None:
+        A = self._num_actions
+        self._table: StateTable[Hashable] = StateTable()
+        self._graph = ManipulationGraph(A)
+        self._q = np.zeros((8, A), dtype=np.float64)
+        self._terminal = np.zeros(8, dtype=bool)
+        # The sampling index mirrors the graph's counts: pair p = (s, a) in first-observed
+        # order, its total count N(s, a) and its edges [s′, N(s, a, s′), reward sum].
+        self._pair_ids: dict[tuple[int, int], int] = {}
+        self._pairs = np.zeros((8, 2), dtype=np.int64)
+        self._pair_totals = np.zeros(8, dtype=np.int64)
+        self._edges: list[list[list[Any]]] = []
+        self._steps = 0
+        self._planning_updates = 0
+
+    # ----------------------------------------------------------------------------- settings
+
+    @property
+    def num_actions(self) -> int:
+        """``A``, the number of actions."""
+        return self._num_actions
+
+    @property
+    def alpha(self) -> float:
+        """Step size in ``(0, 1]`` (settable)."""
+        return self._alpha
+
+    @alpha.setter
+    def alpha(self, value: float) -> None:
+        self._alpha = check_real("alpha", value, low=0.0, high=1.0, low_open=True)
+
+    @property
+    def gamma(self) -> float:
+        """Discount factor in ``[0, 1]``."""
+        return self._gamma
+
+    @property
+    def epsilon(self) -> float:
+        """Exploration probability of :meth:`act` in ``[0, 1]`` (settable, e.g. by a
+        :class:`EpsilonSchedule`)."""
+        return self._epsilon
+
+    @epsilon.setter
+    def epsilon(self, value: float) -> None:
+        self._epsilon = check_real("epsilon", value, low=0.0, high=1.0)
+
+    @property
+    def planning_steps(self) -> int:
+        """Planning updates per real transition (settable)."""
+        return self._planning_steps
+
+    @planning_steps.setter
+    def planning_steps(self, value: int) -> None:
+        self._planning_steps = check_int("planning_steps", value, low=0)
+
+    @property
+    def sampler(self) -> Sampler:
+        """How planning draws next states: ``"index"`` or ``"graph"``."""
+        return self._sampler
+
+    @property
+    def seed(self) -> int:
+        """The seed the agent was created with."""
+        return self._seed
+
+    # ------------------------------------------------------------------------------ queries
+
+    @property
+    def graph(self) -> ManipulationGraph:
+        """The learned model (the live object: read it, do not modify it)."""
+        return self._graph
+
+    @property
+    def states(self) -> tuple[Hashable, ...]:
+        """The known states, indexed by id."""
+        return self._table.states
+
+    @property
+    def num_states(self) -> int:
+        """``K``, the number of known states."""
+        return len(self._table)
+
+    @property
+    def steps(self) -> int:
+        """Number of real transitions observed."""
+        return self._steps
+
+    @property
+    def planning_updates(self) -> int:
+        """Number of planning updates made."""
+        return self._planning_updates
+
+    def __contains__(self, state: object) -> bool:
+        return state in self._table
+
+    def index(self, state: Hashable) -> int:
+        """The id of a known state (``KeyError`` if unknown)."""
+        return self._table.index(state)
+
+    def q_values(self, state: Hashable, *, dtype: torch.dtype = torch.float64) -> Tensor:
+        """``Q(state, ·)``, zeros for an unknown state.
+
+        Returns:
+            ``(A,)`` new tensor of ``dtype``.
+        """
+        return torch.from_numpy(self._row(state).copy()).to(dtype)
+
+    def q_table(self, *, dtype: torch.dtype = torch.float64) -> Tensor:
+        """The Q table in id order (rows follow :attr:`states` and ``graph.states``).
+
+        Returns:
+            ``(K, A)`` new tensor of ``dtype``; feed it to :func:`qmdp_action` with a belief
+            over the graph's states.
+        """
+        return torch.from_numpy(self._q[: self.num_states].copy()).to(dtype)
+
+    def is_terminal(self, state: Hashable) -> bool:
+        """Whether ``state`` was reached with ``terminal=True``."""
+        index = self._table.get(self._check_hashable("state", state))
+        return index >= 0 and bool(self._terminal[index])
+
+    # ------------------------------------------------------------------------------- acting
+
+    def act(self, state: Hashable) -> int:
+        """ε-greedy action: uniform with probability ε, else a maximizing action, ties broken
+        uniformly at random (uses the agent's generator).
+        """
+        row = self._row(state)
+        if self._rng.random() < self._epsilon:
+            return int(self._rng.integers(self._num_actions))
+        best = np.flatnonzero(row == row.max())
+        if best.size == 1:
+            return int(best[0])
+        return int(best[self._rng.integers(best.size)])
+
+    def greedy(self, state: Hashable) -> int:
+        """A maximizing action, the lowest one among ties (deterministic; no randomness used)."""
+        return int(np.argmax(self._row(state)))
+
+    def _row(self, state: Hashable) -> np.ndarray:
+        index = self._table.get(self._check_hashable("state", state))
+        if index < 0:
+            return np.zeros(self._num_actions, dtype=np.float64)
+        row: np.ndarray = self._q[index]
+        return row
+
+    # ----------------------------------------------------------------------------- learning
+
+    def observe(
+        self,
+        state: Hashable,
+        action: int,
+        reward: float,
+        next_state: Hashable,
+        terminal: bool,
+    ) -> None:
+        """Learn from one real transition: Q update, model update, then planning updates.
+
+        Args:
+            state: the state ``s`` the action was taken in.
+            action: the action ``a`` in ``[0, A)``.
+            reward: the reward ``r``, a finite number.
+            next_state: the resulting state ``s′``.
+            terminal: ``s′`` ends the episode (its value is 0); pass ``False`` when an episode
+                is only cut by a time limit.
+
+        Raises:
+            ValueError: a state is not hashable, the action is out of range, the reward is
+                not finite or ``terminal`` is not a bool.
+        """
+        a = check_int("action", action, low=0, high=self._num_actions)
+        r = check_real("reward", reward)
+        if not isinstance(terminal, (bool, np.bool_)):
+            raise ValueError(f"terminal must be a bool, got {terminal!r}")
+        # Check both states before registering either, so that a failure changes nothing.
+        K = len(self._table)
+        state_is_new = self._table.get(self._check_hashable("state", state)) < 0
+        if state_is_new:
+            self._check_stand_in("state", state, K)
+        if self._table.get(self._check_hashable("next_state", next_state)) < 0 and not (
+            state_is_new and next_state == state
+        ):
+            self._check_stand_in("next_state", next_state, K + state_is_new)
+        s = self._register("state", state)
+        s2 = self._register("next_state", next_state)
+        self._graph.observe(self._graph_state(s), a, self._graph_state(s2), r)
+        self._record(s, a, s2, r)
+        if terminal:
+            self._terminal[s2] = True
+        q = self._q
+        target = r if terminal else r + self._gamma * float(q[s2].max())
+        q[s, a] += self._alpha * (target - q[s, a])
+        self._steps += 1
+        self._plan()
+
+    def _check_hashable(self, name: str, state: object) -> Hashable:
+        try:
+            hash(state)
+        except TypeError:
+            raise ValueError(f"{name} must be hashable, got {type(state).__name__}") from None
+        return state
+
+    def _graph_state(self, index: int) -> ManipulationState:
+        state = self._table[index]
+        return state if isinstance(state, ManipulationState) else _placeholder(index)
+
+    def _check_stand_in(self, name: str, state: object, index: int) -> ManipulationState:
+        """The graph-side state of a new ``state`` that would get id ``index``.
+
+        Raises:
+            ValueError: it is already in the graph (as another state's stand-in, or a
+                stand-in equal to a manipulation state).
+        """
+        graph_state = state if isinstance(state, ManipulationState) else _placeholder(index)
+        if graph_state in self._graph:
+            raise ValueError(
+                f"{name} {state!r} collides in the graph with the stand-in of another state"
+            )
+        return graph_state
+
+    def _register(self, name: str, state: object) -> int:
+        """The id of ``state``, registering it (in the table, Q table and graph) if new."""
+        known = self._table.get(self._check_hashable(name, state))
+        if known >= 0:
+            return known
+        index = len(self._table)
+        graph_state = self._check_stand_in(name, state, index)
+        self._table.add(state)
+        self._graph.add_state(graph_state)
+        if index >= self._q.shape[0]:
+            self._q = _grow(self._q, index + 1)
+            self._terminal = _grow(self._terminal, index + 1)
+        return index
+
+    def _record(self, s: int, a: int, s2: int, r: float) -> None:
+        """Add ``(s, a, s′, r)`` to the sampling index (same arithmetic as the graph)."""
+        pair = self._pair_ids.get((s, a))
+        if pair is None:
+            pair = self._pair_ids[(s, a)] = len(self._edges)
+            if pair >= self._pairs.shape[0]:
+                self._pairs = _grow(self._pairs, pair + 1)
+                self._pair_totals = _grow(self._pair_totals, pair + 1)
+            self._pairs[pair] = (s, a)
+            self._edges.append([])
+        self._pair_totals[pair] += 1
+        for edge in self._edges[pair]:
+            if edge[0] == s2:
+                edge[1] += 1
+                edge[2] += r
+                return
+        self._edges[pair].append([s2, 1, r])
+
+    def plan(self, num_updates: int | None = None) -> None:
+        """Planning updates without a real transition (e.g. between episodes).
+
+        Args:
+            num_updates: how many, ``>= 0``; ``None`` is :attr:`planning_steps`. Nothing
+                happens before the first :meth:`observe`.
+
+        Raises:
+            ValueError: ``num_updates`` is negative or not an int.
+        """
+        n = self._planning_steps if num_updates is None else num_updates
+        self._plan(check_int("num_updates", n, low=0))
+
+    def _plan(self, n: int | None = None) -> None:
+        n = self._planning_steps if n is None else n
+        num_pairs = len(self._edges)
+        if n == 0 or num_pairs == 0:
+            return
+        picks = self._rng.integers(num_pairs, size=n)
+        sources = self._pairs[picks, 0].tolist()
+        actions = self._pairs[picks, 1].tolist()
+        if self._sampler == "graph":
+            next_ids, mean_rewards = self._graph.sample_ids(
+                torch.as_tensor(self._pairs[picks, 0]),
+                torch.as_tensor(self._pairs[picks, 1]),
+                generator=self._torch_rng,
+            )
+            targets: list[int] = next_ids.tolist()
+            rewards: list[float] = mean_rewards.tolist()
+        else:
+            tickets = self._rng.integers(self._pair_totals[picks]).tolist()
+            targets, rewards = [], []
+            for pair, ticket in zip(picks.tolist(), tickets, strict=True):
+                edges, k = self._edges[pair], 0
+                while ticket >= edges[k][1]:  # the edge holding ticket ∈ [0, N(s, a))
+                    ticket -= edges[k][1]
+                    k += 1
+                s2, count, total = edges[k]
+                targets.append(s2)
+                rewards.append(total / count)
+        q, terminal, alpha, gamma = self._q, self._terminal, self._alpha, self._gamma
+        for s, a, s2, r in zip(sources, actions, targets, rewards, strict=True):
+            target = r if terminal[s2] else r + gamma * float(q[s2].max())
+            q[s, a] += alpha * (target - q[s, a])
+        self._planning_updates += n
+
+    # -------------------------------------------------------------------------- checkpoints
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to resume exactly: settings, states, Q table, terminal flags,
+        the graph, the sampling index, the generators' states and the counters.
+
+        The result shares no memory with the agent. It holds the states themselves (any
+        hashable objects), so save it with ``torch.save`` and read it back with
+        ``torch.load(..., weights_only=False)`` (or pickle).
+        """
+        K, P = self.num_states, len(self._edges)
+        edge_rows = [
+            (pair, s2, count, total)
+            for pair, edges in enumerate(self._edges)
+            for s2, count, total in edges
+        ]
+        edge_pair, edge_next, edge_count, edge_sum = (
+            [row[k] for row in edge_rows] for k in range(4)
+        )
+        return {
+            "format": _FORMAT,
+            "version": 1,
+            "num_actions": self._num_actions,
+            "alpha": self._alpha,
+            "gamma": self._gamma,
+            "epsilon": self._epsilon,
+            "planning_steps": self._planning_steps,
+            "seed": self._seed,
+            "sampler": self._sampler,
+            "states": list(self._table.states),
+            "q_table": torch.from_numpy(self._q[:K].copy()),
+            "terminal": torch.from_numpy(self._terminal[:K].copy()),
+            "graph": self._graph.to_json(),
+            "pairs": torch.from_numpy(self._pairs[:P].copy()),
+            "edge_pair": torch.tensor(edge_pair, dtype=torch.long),
+            "edge_next": torch.tensor(edge_next, dtype=torch.long),
+            "edge_count": torch.tensor(edge_count, dtype=torch.long),
+            "edge_reward_sum": torch.tensor(edge_sum, dtype=torch.float64),
+            "numpy_rng": copy.deepcopy(self._rng.bit_generator.state),
+            "torch_rng": self._torch_rng.get_state(),
+            "steps": self._steps,
+            "planning_updates": self._planning_updates,
+        }
+
+    def load_state_dict(self, state_dict: Mapping[str, Any]) -> None:
+        """Restore a :meth:`state_dict` (settings included); the agent then continues exactly
+        as the saved one would have.
+
+        Raises:
+            ValueError: ``state_dict`` is not a DynaQ state, was saved with another number of
+                actions, or its parts disagree with each other (the agent is then unchanged).
+        """
+        restored = DynaQ(self._num_actions)
+        restored._restore(state_dict)
+        self.__dict__.update(restored.__dict__)
+
+    def _restore(self, state_dict: Mapping[str, Any]) -> None:
+        """Load ``state_dict`` into this (fresh) agent; see :meth:`load_state_dict`."""
+        if not isinstance(state_dict, Mapping) or state_dict.get("format") != _FORMAT:
+            raise ValueError(f"state_dict is not a {_FORMAT} state")
+        if state_dict["num_actions"] != self._num_actions:
+            raise ValueError(
+                f"state_dict has num_actions = {state_dict['num_actions']}, "
+                f"this agent has {self._num_actions}"
+            )
+        states = list(state_dict["states"])
+        K, A = len(states), self._num_actions
+        q_table = torch.as_tensor(state_dict["q_table"], dtype=torch.float64)
+        terminal = torch.as_tensor(state_dict["terminal"], dtype=torch.bool)
+        if q_table.shape != (K, A) or terminal.shape != (K,):
+            raise ValueError(
+                f"state_dict q_table/terminal must have shapes ({K}, {A})/({K},), "
+                f"got {tuple(q_table.shape)}/{tuple(terminal.shape)}"
+            )
+        if not bool(torch.isfinite(q_table).all()):
+            raise ValueError("state_dict q_table contains NaN or inf")
+        alpha, epsilon, steps = state_dict["alpha"], state_dict["epsilon"], state_dict["steps"]
+        planning_steps, sampler = state_dict["planning_steps"], state_dict["sampler"]
+        check_real("state_dict alpha", alpha, low=0.0, high=1.0, low_open=True)
+        check_real("state_dict epsilon", epsilon, low=0.0, high=1.0)
+        gamma = check_real("state_dict gamma", state_dict["gamma"], low=0.0, high=1.0)
+        check_int("state_dict planning_steps", planning_steps, low=0)
+        if sampler not in ("index", "graph"):
+            raise ValueError(f"state_dict sampler must be 'index' or 'graph', got {sampler!r}")
+        graph = ManipulationGraph.from_json(state_dict["graph"])
+        self._reset_tables()
+        for index, state in enumerate(states):
+            if self._register("state_dict states", state) != index:
+                raise ValueError("state_dict states must be distinct")
+        if graph.states != self._graph.states or graph.num_actions != A:
+            raise ValueError("state_dict graph does not match state_dict states")
+        self._graph = graph
+        self._q[:K] = q_table.numpy()
+        self._terminal[:K] = terminal.numpy()
+        self._load_index(state_dict)
+        self._alpha, self._gamma, self._epsilon = float(alpha), gamma, float(epsilon)
+        self._planning_steps, self._sampler = int(planning_steps), sampler
+        self._seed = int(state_dict["seed"])
+        self._rng.bit_generator.state = copy.deepcopy(state_dict["numpy_rng"])
+        self._torch_rng.set_state(state_dict["torch_rng"])
+        self._steps, self._planning_updates = int(steps), int(state_dict["planning_updates"])
+
+    def _load_index(self, state_dict: Mapping[str, Any]) -> None:
+        """Rebuild the sampling index and check it against the graph's counts."""
+        pairs = torch.as_tensor(state_dict["pairs"], dtype=torch.long).reshape(-1, 2).tolist()
+        columns = zip(
+            torch.as_tensor(state_dict["edge_pair"]).tolist(),
+            torch.as_tensor(state_dict["edge_next"]).tolist(),
+            torch.as_tensor(state_dict["edge_count"]).tolist(),
+            torch.as_tensor(state_dict["edge_reward_sum"], dtype=torch.float64).tolist(),
+            strict=True,
+        )
+        self._pairs = _grow(self._pairs, len(pairs))
+        self._pair_totals = _grow(self._pair_totals, len(pairs))
+        for pair, (s, a) in enumerate(pairs):
+            self._pair_ids[(s, a)] = pair
+            self._pairs[pair] = (s, a)
+            self._edges.append([])
+        counts: dict[tuple[int, int, int], tuple[int, float]] = {}
+        for pair, s2, count, total in columns:
+            self._edges[pair].append([s2, count, total])
+            self._pair_totals[pair] += count
+            s, a = pairs[pair]
+            counts[(s, a, s2)] = (count, total)
+        graph_counts = {
+            (i, a, j): (n, total)
+            for i, a, j, n, total in json.loads(self._graph.to_json())["transitions"]
+        }
+        if counts != graph_counts or len(self._pair_ids) != len(pairs):
+            raise ValueError("state_dict sampling index does not match its graph")
+
+    @classmethod
+    def from_state_dict(cls, state_dict: Mapping[str, Any]) -> DynaQ:
+        """A new agent restored from :meth:`state_dict`."""
+        if not isinstance(state_dict, Mapping) or state_dict.get("format") != _FORMAT:
+            raise ValueError(f"state_dict is not a {_FORMAT} state")
+        agent = cls(state_dict["num_actions"])
+        agent.load_state_dict(state_dict)
+        return agent
+
+    def __repr__(self) -> str:
+        return (
+            f"DynaQ(num_actions={self._num_actions}, alpha={self._alpha}, gamma={self._gamma}, "
+            f"epsilon={self._epsilon}, planning_steps={self._planning_steps}, "
+            f"seed={self._seed}, sampler={self._sampler!r}, states={self.num_states}, "
+            f"steps={self._steps})"
+        )
+
+
+def _grow(array: np.ndarray, size: int) -> np.ndarray:
+    """``array`` zero-padded along dim 0 to a capacity ``>= size`` (doubling)."""
+    if array.shape[0] >= size:
+        return array
+    capacity = max(size, 2 * array.shape[0], 8)
+    grown = np.zeros((capacity, *array.shape[1:]), dtype=array.dtype)
+    grown[: array.shape[0]] = array
+    return grown
