@@ -1,0 +1,78 @@
+"""Gymnasium environments on the planar contact simulator.
+
+:class:`PegInHole2D` is a planar peg-in-hole task: a gripper holds a rectangular peg by
+friction between two servoed fingers, so the peg can slip and turn in the grasp when the hole
+pushes on it. :class:`PegInHole2DVector` steps a batch of them as one tensor batch. Their
+manipulation states (:class:`PegInHoleStates`) are integer ids computed in one vectorized pass
+from poses (true or estimated) and contact classes.
+
+Importing this package registers ``"torchcontact/PegInHole2D-v0"`` with gymnasium (also for
+``gymnasium.make_vec(..., vectorization_mode="vector_entry_point")``).
+"""
+
+from __future__ import annotations
+
+import gymnasium
+
+from torchcontact.envs._config import PegInHoleConfig
+from torchcontact.envs._engine import CompactSimulator
+from torchcontact.envs._env import PegInHole2D
+from torchcontact.envs._observe import START_KEYS
+from torchcontact.envs._states import (
+    CONTACT_TABLE,
+    ENV_BELOW,
+    ENV_LEFT,
+    ENV_RIGHT,
+    GRASP_NONE,
+    GRASP_SLIDE,
+    GRASP_STICK,
+    HELD_FREE,
+    NUM_CONTACT_CLASSES,
+    PegInHoleStates,
+    contact_classes,
+    manipulation_state,
+)
+from torchcontact.envs._task import (
+    ACTION_NAMES,
+    BODY_NAMES,
+    PegInHoleTask,
+    Physics,
+    build_scene,
+)
+from torchcontact.envs._vector import PegInHole2DVector
+
+#: Gymnasium id of :class:`PegInHole2D`.
+PEG_IN_HOLE_ID = "torchcontact/PegInHole2D-v0"
+
+if PEG_IN_HOLE_ID not in gymnasium.registry:
+    gymnasium.register(
+        id=PEG_IN_HOLE_ID,
+        entry_point="torchcontact.envs:PegInHole2D",
+        vector_entry_point="torchcontact.envs:PegInHole2DVector",
+    )
+
+__all__ = [
+    "ACTION_NAMES",
+    "BODY_NAMES",
+    "CONTACT_TABLE",
+    "ENV_BELOW",
+    "ENV_LEFT",
+    "ENV_RIGHT",
+    "GRASP_NONE",
+    "GRASP_SLIDE",
+    "GRASP_STICK",
+    "HELD_FREE",
+    "NUM_CONTACT_CLASSES",
+    "PEG_IN_HOLE_ID",
+    "START_KEYS",
+    "CompactSimulator",
+    "PegInHole2D",
+    "PegInHole2DVector",
+    "PegInHoleConfig",
+    "PegInHoleStates",
+    "PegInHoleTask",
+    "Physics",
+    "build_scene",
+    "contact_classes",
+    "manipulation_state",
+]
