@@ -52,6 +52,7 @@ from torchcontact.filters import (
     ekf_update,
     empirical_transition,
     resample,
+    wrap_angle,
 )
 from torchcontact.geometry import HalfPlane, Polygon
 from torchcontact.sim import UNSOLVED, Body, Rollout, Scene, Simulator, draw_scene
@@ -228,11 +229,6 @@ def tactile_readings(
     return tactile.sample(tactile.triggered(contacts), generator=gen)
 
 
-def wrap(angle: Tensor) -> Tensor:
-    """Angle wrapped to ``(-π, π]``."""
-    return torch.atan2(torch.sin(angle), torch.cos(angle))
-
-
 # ----------------------------------------------------------------------------------------------
 # estimators
 
@@ -319,7 +315,7 @@ def run_pf(
         log_w = log_w + torch.where(r, torch.log(on), torch.log1p(-on)).sum(-1)
         seen = torch.isfinite(y[t]).all(-1)
         residual = x[..., :3] - y[t][:, None]
-        residual[..., 2] = wrap(residual[..., 2])
+        residual[..., 2] = wrap_angle(residual[..., 2])
         vision = -0.5 * (residual / R_std).pow(2).sum(-1)
         log_w = log_w + torch.where(seen[:, None], vision.nan_to_num(0.0), 0.0)
         weights = torch.softmax(log_w, -1)
@@ -461,7 +457,7 @@ def run(args: Args) -> dict[str, Any]:
     for method, out in outputs.items():
         diff = out["pose"] - true_pose
         pos = diff[..., :2].pow(2).sum(-1)  # (T, B)
-        ang = wrap(diff[..., 2]).pow(2)
+        ang = wrap_angle(diff[..., 2]).pow(2)
         errors[method] = (pos.sqrt(), ang.sqrt())
         row = {
             "pos_rmse_mm": 1e3 * float(pos.mean().sqrt()),

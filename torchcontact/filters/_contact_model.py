@@ -250,10 +250,7 @@ class PlanarContactModel:
         Returns:
             ``(*B, 6)`` the state after the step (in ``x``'s dtype).
         """
-        if not isinstance(x, Tensor) or not x.is_floating_point() or x.shape[-1:] != (6,):
-            raise ValueError(f"x: expected a floating (*B, 6) tensor, got {describe(x)}")
-        if not bool(torch.isfinite(x).all()):
-            raise ValueError("x: contains NaN or inf")
+        _check_state(x)
         if not isinstance(mode, Tensor) or mode.dtype != torch.long:
             raise ValueError(f"mode: expected a long (*B,) tensor, got {describe(mode)}")
         if bool(((mode < 0) | (mode >= self.num_modes)).any()):
@@ -283,10 +280,7 @@ class PlanarContactModel:
         self, x: Tensor, control: KinematicControl | None
     ) -> tuple[Tensor, Tensor, Tensor]:
         """``F``, ``c`` and ``(*B, K)`` bool: the mode is consistent at ``x``."""
-        if not isinstance(x, Tensor) or not x.is_floating_point() or x.shape[-1:] != (6,):
-            raise ValueError(f"x: expected a floating (*B, 6) tensor, got {describe(x)}")
-        if not bool(torch.isfinite(x).all()):
-            raise ValueError("x: contains NaN or inf (the belief's mean)")
+        _check_state(x)
         K, n = self.num_modes, STATE_DIM
         batch = x.shape[:-1]
         x = x.to(torch.float64)
@@ -452,6 +446,14 @@ class PlanarContactModel:
                     f"{name}: batch {tuple(value.shape[:-2])} does not broadcast to {tuple(batch)}"
                 ) from err
         return out[0], out[1]
+
+
+def _check_state(x: object) -> None:
+    """Raise unless ``x`` is a finite floating ``(*B, 6)`` pose-and-twist tensor."""
+    if not isinstance(x, Tensor) or not x.is_floating_point() or x.shape[-1:] != (6,):
+        raise ValueError(f"x: expected a floating (*B, 6) tensor, got {describe(x)}")
+    if not bool(torch.isfinite(x).all()):
+        raise ValueError("x: contains NaN or inf")
 
 
 def collect_modes(modes: Tensor) -> tuple[Tensor, Tensor, Tensor]:
