@@ -214,6 +214,15 @@ def test_mode_dynamics_with_the_wrong_batch_or_nan_are_rejected() -> None:
     poisoned = RBPF(_Poisoned(problem.model(), ()), 16)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="NaN"):
         poisoned.step(poisoned.init(_prior()), torch.zeros(1, dtype=F64))
+
+    class _Weighted(_BatchedLinear):
+        def mode_dynamics(self, belief: RBPFBelief, control: object) -> ModeDynamics:
+            weight = torch.zeros(2, 3, 3, dtype=F64)  # batch (2, 3): wider than the belief's (3,)
+            return replace(super().mode_dynamics(belief, control), mode_log_weight=weight)
+
+    weighted = RBPF(_Weighted(problem.model(), ()), 16)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="mode_log_weight"):
+        weighted.step(weighted.init(_prior(), batch_shape=(3,)), torch.zeros(1, dtype=F64))
     shared = RBPF(problem.model(), 16)
     with pytest.raises(ValueError, match="control"):
         shared.step(shared.init(_prior()), torch.zeros(1, dtype=F64), control=1.0)

@@ -484,7 +484,15 @@ class RBPF:
                 like=model.initial,
                 allow_neginf=True,
             )
-            broadcast_batch([*shapes[:1], ("mode_log_weight", log_weight.shape[:-1])])
+            weight_batch = [
+                ("belief", belief.batch_shape),
+                ("mode_log_weight", log_weight.shape[:-1]),
+            ]
+            if broadcast_batch(weight_batch) != belief.batch_shape:
+                raise ValueError(
+                    f"model: mode_dynamics().mode_log_weight batch {tuple(log_weight.shape[:-1])} "
+                    f"does not broadcast to the belief's batch {tuple(belief.batch_shape)}"
+                )
         return packed, log_weight
 
     def _kalman(
