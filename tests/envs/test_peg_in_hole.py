@@ -5,6 +5,7 @@ from __future__ import annotations
 import bisect
 import math
 import warnings
+from dataclasses import replace
 from typing import Any
 
 import gymnasium as gym
@@ -14,6 +15,7 @@ import torch
 from gymnasium.utils.env_checker import check_env
 
 from torchcontact.envs import (
+    CompactSimulator,
     ENV_BELOW,
     GRASP_NONE,
     GRASP_SLIDE,
@@ -24,6 +26,7 @@ from torchcontact.envs import (
     PegInHole2DVector,
     PegInHoleConfig,
 )
+from torchcontact.sim import UNSOLVED, StepResult
 from torchcontact.states import ManipulationState
 
 STAY, RIGHT, LEFT, UP, DOWN, TURN_LEFT, TURN_RIGHT = range(7)
@@ -342,3 +345,29 @@ def test_bad_arguments_raise_value_errors_naming_them() -> None:
     vector.reset(seed=0)
     with pytest.raises(ValueError, match="actions"):
         vector.step(np.zeros(2, dtype=np.int64))
+
+
+def test_a_failed_solve_ends_the_episode_as_dropped_with_clean_contacts(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A step whose solver fails (garbage impulses, some negative) ends the episode; it must not
+    crash the contact report."""
+    env = PegInHole2D()
+    env.reset(seed=3)
+    solve = CompactSimulator.step
+
+    def failing(self: CompactSimulator, *args: Any, **kwargs: Any) -> StepResult:
+        result = solve(self, *args, **kwargs)
+        return replace(
+            result,
+            pn=result.pn - 0.05,
+            solver=torch.full_like(result.solver, UNSOLVED),
+            residual=torch.full_like(result.residual, 1.0),
+        )
+
+    monkeypatch.setattr(CompactSimulator, "step", failing)
+    _, reward, terminated, truncated, info = env.step(0)
+    assert terminated and not truncated
+    assert info["dropped"] and not info["success"]
+    assert reward == pytest.approx(-env.config.step_cost - env.config.drop_penalty)
+    assert (info["contact_impulses"] >= 0).all()

@@ -424,7 +424,9 @@ class PegInHoleTask:
             contact_q=contact_q,
             points=result.geometry.points,
             normals=result.geometry.normals,
-            pn=result.pn,
+            # A failed solve (the episode then ends as dropped) may leave garbage impulses;
+            # accepted ones may be a round-off below zero. Reported impulses are >= 0.
+            pn=torch.nan_to_num(result.pn, nan=0.0).clamp(min=0.0),
             mode=result.mode,
             active=result.geometry.active,
             unsolved=unsolved,
