@@ -4,7 +4,7 @@ identical modes) and the exact posterior of a small switching system by enumerat
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pytest
@@ -17,6 +17,7 @@ from torchcontact.filters import (
     RBPF,
     Gaussian,
     LinearSwitchingModel,
+    ModeDynamics,
     RBPFBelief,
     kf_predict,
     kf_update,
@@ -492,3 +493,116 @@ def test_rbpf_validation_names_the_argument() -> None:
     ):
         with pytest.raises(ValueError, match=f"^{argument}:"):
             call()
+
+
+# --------------------------------------------------------------------------------------------
+# Per-particle transition rows (a mode transition that depends on the continuous state)
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class _StateDependentModel(LinearSwitchingModel):
+    """p(m_t | m_{t-1}, x̂_{t-1}) ∝ transition[m_{t-1}] · exp(slope[m_{t-1}] · x̂_{t-1}), x̂
+    the particle's filtered mean: the rows differ between particles of the same mode."""
+
+    slope: torch.Tensor  # (K, K, n)
+
+    def mode_dynamics(self, belief: RBPFBelief, control: object) -> ModeDynamics:
+        logits = torch.log(self.transition)[belief.modes] + torch.einsum(
+            "...kn,...n->...k", self.slope[belief.modes], belief.gaussians.mean
+        )
+        rows = torch.softmax(logits, dim=-1)
+        return replace(super().mode_dynamics(belief, control), transition_rows=rows)
+
+
+def _state_dependent_slope() -> np.ndarray:
+    return np.random.default_rng(21).normal(scale=0.8, size=(K, K, N_STATE))
+
+
+def _enumerate_state_dependent(problem: Problem, slope: np.ndarray, steps: int) -> float:
+    """log p(y_1:steps) by recursion over every mode path, each with its own Kalman filter."""
+    a = problem.arrays
+    log_t = np.log(a["transition"][0])
+
+    def visit(t: int, mode: int, m: np.ndarray, P: np.ndarray, log_p: float) -> list[float]:
+        if t == steps:
+            return [log_p]
+        logits = log_t[mode] + slope[mode] @ m
+        log_rows = logits - np.logaddexp.reduce(logits)
+        out = []
+        for k in range(K):
+            m_k, P_k = ref.kf_predict(m, P, a["F"][k], a["c"][k], a["Q"][k])
+            m_k, P_k, ll = ref.kf_update(m_k, P_k, problem.ys[t], a["H"][k], a["d"][k], a["R"][k])
+            out += visit(t + 1, k, m_k, P_k, log_p + log_rows[k] + ll)
+        return out
+
+    leaves = []
+    for k0 in range(K):
+        leaves += visit(0, k0, np.zeros(N_STATE), np.eye(N_STATE), math.log(a["initial"][k0]))
+    return float(np.logaddexp.reduce(np.array(leaves)))
+
+
+def test_transition_rows_equal_enumeration_of_a_state_dependent_transition() -> None:
+    problem = _problem(seed=6)
+    slope = _state_dependent_slope()
+    steps = 4
+    fields = {k: torch.tensor(v, dtype=F64) for k, v in problem.arrays.items()}
+    fields["transition"] = fields["transition"][0]
+    model = _StateDependentModel(**fields, slope=torch.tensor(slope))
+    rbpf = RBPF(model, K ** (steps + 1), proposal="all_modes")
+    belief = rbpf.init(_prior())
+    for t in range(steps):
+        belief = rbpf.step(belief, torch.tensor(problem.ys[t]))
+    exact = _enumerate_state_dependent(problem, slope, steps)
+    assert abs(belief.log_evidence.item() - exact) < 1e-10
+    # the constant-transition filter gives a different answer: the rows mattered
+    plain = RBPF(problem.model(), K ** (steps + 1), proposal="all_modes")
+    other = plain.init(_prior())
+    for t in range(steps):
+        other = plain.step(other, torch.tensor(problem.ys[t]))
+    assert abs(other.log_evidence.item() - exact) > 1e-3
+
+
+@pytest.mark.parametrize("proposal", ["bootstrap", "all_modes"])
+def test_transition_rows_from_the_matrix_reproduce_the_plain_filter(proposal: str) -> None:
+    problem = _problem(seed=7)
+    fields = {k: torch.tensor(v, dtype=F64) for k, v in problem.arrays.items()}
+    fields["transition"] = fields["transition"][0]
+    zero = torch.zeros(K, K, N_STATE, dtype=F64)
+    rows_model = _StateDependentModel(**fields, slope=zero)
+    results = []
+    for model in (problem.model(), rows_model):
+        rbpf = RBPF(model, 32, proposal=proposal)  # type: ignore[arg-type]
+        gen = torch.Generator().manual_seed(3)
+        torch.manual_seed(5)  # init draws from torch's default generator
+        belief = rbpf.init(_prior(), batch_shape=(4,))
+        for t in range(T):
+            belief = rbpf.step(belief, torch.tensor(problem.ys[t]), generator=gen)
+        results.append(belief)
+    plain, rows = results
+    torch.testing.assert_close(rows.log_evidence, plain.log_evidence, rtol=1e-12, atol=1e-12)
+    assert torch.equal(rows.modes, plain.modes)
+
+
+@pytest.mark.parametrize(
+    ("rows", "match"),
+    [
+        (torch.full((5, K), 0.5, dtype=F64), "summing to 1"),
+        (torch.tensor([[1.5, -0.5, 0.0]], dtype=F64).expand(5, K), "non-negative"),
+        (torch.full((4, K), 1.0 / K, dtype=F64), "transition_rows"),
+        (torch.full((2, 5, K), 1.0 / K, dtype=F64), "broadcast"),
+    ],
+)
+def test_transition_rows_are_validated(rows: torch.Tensor, match: str) -> None:
+    problem = _problem(seed=7)
+
+    @dataclass(frozen=True, eq=False, kw_only=True)
+    class Fixed(LinearSwitchingModel):
+        def mode_dynamics(self, belief: RBPFBelief, control: object) -> ModeDynamics:
+            return replace(super().mode_dynamics(belief, control), transition_rows=rows)
+
+    fields = {k: torch.tensor(v, dtype=F64) for k, v in problem.arrays.items()}
+    fields["transition"] = fields["transition"][0]
+    rbpf = RBPF(Fixed(**fields), 5)
+    belief = rbpf.init(_prior())
+    with pytest.raises(ValueError, match=match):
+        rbpf.step(belief, torch.tensor(problem.ys[0]))

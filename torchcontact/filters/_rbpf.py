@@ -422,23 +422,54 @@ class RBPF:
                 + ", ".join(f"{name} {tuple(s)}" for name, s in shapes[1:])
             )
         observed = observed_components(y, mask)
-        packed, mode_log_weight = self._packed_dynamics(belief, control)
-        if mode_log_weight is not None:
-            extra = mode_log_weight if extra is None else extra + mode_log_weight
-        if self.proposal == "bootstrap":
-            return self._step_bootstrap(belief, packed, y, observed, transition, extra, generator)
-        return self._step_all_modes(belief, packed, y, observed, transition, extra, generator)
-
-    def _packed_dynamics(self, belief: RBPFBelief, control: Any) -> tuple[Tensor, Tensor | None]:
-        """The model's per-mode dynamics of this step, checked and packed: ``(*B', K, P)``
-        with ``*B'`` empty or broadcastable to the belief's batch, and the optional
-        ``mode_log_weight (*B', K)``."""
-        model = self.model
-        dynamics = model.mode_dynamics(belief, control)
+        dynamics = self.model.mode_dynamics(belief, control)
         if not isinstance(dynamics, ModeDynamics):
             raise ValueError(
                 f"model: mode_dynamics returned {type(dynamics).__name__}, not ModeDynamics"
             )
+        packed, mode_log_weight = self._packed_dynamics(belief, dynamics)
+        if mode_log_weight is not None:
+            extra = mode_log_weight if extra is None else extra + mode_log_weight
+        rows = self._transition_rows(belief, transition, dynamics.transition_rows)
+        if self.proposal == "bootstrap":
+            return self._step_bootstrap(belief, packed, y, observed, rows, extra, generator)
+        return self._step_all_modes(belief, packed, y, observed, rows, extra, generator)
+
+    def _transition_rows(
+        self, belief: RBPFBelief, transition: Tensor, rows: Tensor | None
+    ) -> Tensor:
+        """``(*B, N, K)`` transition probabilities of every particle's next mode: the model's
+        per-particle ``rows`` if given (checked), else the rows of ``transition`` (``(K, K)``
+        or ``(*B', K, K)``) selected by the particles' modes."""
+        model, N, K = self.model, self.num_particles, self.model.num_modes
+        batch = belief.batch_shape
+        if rows is None:
+            return transition.expand(*batch, K, K).gather(
+                -2, belief.modes.unsqueeze(-1).expand(*batch, N, K)
+            )
+        rows = check_tensor(
+            rows, "model: mode_dynamics().transition_rows", event_shape=(N, K), like=model.initial
+        )
+        shapes = [("belief", batch), ("transition_rows", rows.shape[:-2])]
+        if broadcast_batch(shapes) != batch:
+            raise ValueError(
+                f"model: mode_dynamics().transition_rows batch {tuple(rows.shape[:-2])} does "
+                f"not broadcast to the belief's batch {tuple(batch)}"
+            )
+        tol = 1e3 * torch.finfo(rows.dtype).eps * K
+        if bool((rows < 0).any()) or not bool(((rows.sum(-1) - 1).abs() <= tol).all()):
+            raise ValueError(
+                "model: mode_dynamics().transition_rows must be non-negative rows summing to 1"
+            )
+        return rows.expand(*batch, N, K)
+
+    def _packed_dynamics(
+        self, belief: RBPFBelief, dynamics: ModeDynamics
+    ) -> tuple[Tensor, Tensor | None]:
+        """The model's per-mode dynamics of this step, checked and packed: ``(*B', K, P)``
+        with ``*B'`` empty or broadcastable to the belief's batch, and the optional
+        ``mode_log_weight (*B', K)``."""
+        model = self.model
         K, n, m = model.num_modes, model.state_dim, model.obs_dim
         events = {
             "F": (K, n, n),
@@ -530,17 +561,14 @@ class RBPF:
         packed: Tensor,
         y: Tensor,
         observed: Tensor | None,
-        transition: Tensor,
+        rows: Tensor,
         extra: Tensor | None,
         generator: torch.Generator | None,
     ) -> RBPFBelief:
         model, N = self.model, self.num_particles
         batch, nb = belief.batch_shape, len(belief.batch_shape)
-        # Sample m_t ~ transition[m_{t-1}] by inverse CDF (no gradient through the draw).
-        cdf = normalized_cdf(transition.detach())  # (*B', K, K)
-        cdf = cdf.expand(*batch, *cdf.shape[-2:]).gather(
-            -2, belief.modes.unsqueeze(-1).expand(*batch, N, cdf.shape[-1])
-        )
+        # Sample m_t ~ p(m_t | particle) by inverse CDF (no gradient through the draw).
+        cdf = normalized_cdf(rows.detach())  # (*B, N, K)
         draw = torch.rand(
             (*batch, N, 1), dtype=torch.float64, device=model.device, generator=generator
         )
@@ -581,7 +609,7 @@ class RBPF:
         packed: Tensor,
         y: Tensor,
         observed: Tensor | None,
-        transition: Tensor,
+        rows: Tensor,
         extra: Tensor | None,
         generator: torch.Generator | None,
     ) -> RBPFBelief:
@@ -604,10 +632,7 @@ class RBPF:
             y,
             observed,
         )
-        log_trans = torch.log(transition)
-        log_trans = log_trans.expand(*batch, K, K).gather(
-            -2, belief.modes.unsqueeze(-1).expand(*batch, N, K)
-        )  # (*B, N, K): log p(m_t = k | m_{t-1} = modes_i)
+        log_trans = torch.log(rows)  # (*B, N, K): log p(m_t = k | particle i)
         log_w = belief.log_weights.unsqueeze(-1) + log_trans + log_lik.unflatten(-1, (N, K))
         if extra is not None:
             log_w = log_w + extra.unsqueeze(-2)

@@ -177,6 +177,11 @@ class ModeDynamics:
             mode ``k`` in this step, like the step's ``extra_log_likelihood`` (e.g. the
             contact model's penalty on modes that are physically inconsistent at the
             linearization point); ``-inf`` rules a mode out.
+        transition_rows: optional ``(*B', N, K)`` per-particle mode transition of this step,
+            ``p(m_t = k | particle i)``, each row non-negative and summing to 1. It replaces the
+            row of the model's transition matrix that particle ``i``'s mode would select: for
+            a model whose mode transition depends on each particle's continuous state (e.g. a
+            manipulation graph over pose cells × contact states).
     """
 
     F: Tensor
@@ -186,6 +191,7 @@ class ModeDynamics:
     d: Tensor
     R: Tensor
     mode_log_weight: Tensor | None = None
+    transition_rows: Tensor | None = None
 
 
 def _shape_matches(shape: torch.Size, expected: tuple[int, ...]) -> bool:
