@@ -348,3 +348,17 @@ def test_other_bad_inputs_raise() -> None:
         agent.epsilon = 2.0
     with pytest.raises(KeyError):
         agent.index("unknown")
+
+
+def test_optimistic_initial_values_make_greedy_try_untried_actions() -> None:
+    """With Q₀ = 1 above every return, a greedy agent moves on to an untried action after one
+    costly try; with Q₀ = 0 the tried action (a small positive return) stays preferred."""
+    for initial, expected in ((1.0, 1), (0.0, 0)):
+        agent = DynaQ(3, alpha=0.5, gamma=0.9, epsilon=0.0, planning_steps=0, initial_value=initial)
+        assert agent.q_values("unknown").tolist() == [initial] * 3
+        agent.observe("s", 0, 0.1, "end", True)
+        assert agent.q_values("s")[0].item() == pytest.approx(initial + 0.5 * (0.1 - initial))
+        assert agent.greedy("s") == expected
+        restored = DynaQ.from_state_dict(agent.state_dict())
+        assert restored.initial_value == initial
+        assert restored.q_values("new").tolist() == [initial] * 3

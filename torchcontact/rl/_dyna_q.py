@@ -48,7 +48,9 @@ class DynaQ:
     the same ids: a :class:`~torchcontact.states.ManipulationState` is stored in the graph as
     itself (so ``graph.states == agent.states`` and the graph is directly the filter's mode
     table), any other hashable state as the stand-in ``ManipulationState((id,), ContactState())``.
-    Unknown states have all-zero Q values.
+    Every Q value starts at ``initial_value`` (unknown states keep it): 0 by default, or an
+    optimistic value (at least the best achievable return) so that a greedy agent still tries
+    every action of a state before it settles (Sutton and Barto, Section 2.6).
 
     **Samplers.** ``sampler="index"`` (default) keeps an incremental sparse index of the
     graph's counts (``O(1)`` per observation, ``O(deg)`` per planning sample);
@@ -68,6 +70,7 @@ class DynaQ:
         planning_steps: planning updates per real transition, ``>= 0`` (0 is Q-learning).
         seed: seed of the agent's random generators, an int ``>= 0``.
         sampler: ``"index"`` or ``"graph"``, see above.
+        initial_value: the Q value of every state-action pair before its first update.
 
     Raises:
         ValueError: an argument is out of range (the message names it).
@@ -88,8 +91,10 @@ class DynaQ:
         seed: int = 0,
         *,
         sampler: Sampler = "index",
+        initial_value: float = 0.0,
     ) -> None:
         self._num_actions = check_int("num_actions", num_actions, low=1)
+        self._initial_value = check_real("initial_value", initial_value)
         self.alpha = alpha
         self._gamma = check_real("gamma", gamma, low=0.0, high=1.0)
         self.epsilon = epsilon
@@ -106,7 +111,7 @@ class DynaQ:
         A = self._num_actions
         self._table: StateTable[Hashable] = StateTable()
         self._graph = ManipulationGraph(A)
-        self._q = np.zeros((8, A), dtype=np.float64)
+        self._q = np.full((8, A), self._initial_value, dtype=np.float64)
         self._terminal = np.zeros(8, dtype=bool)
         # The sampling index mirrors the graph's counts: pair p = (s, a) in first-observed
         # order, its total count N(s, a) and its edges [s′, N(s, a, s′), reward sum].
@@ -158,6 +163,11 @@ class DynaQ:
         self._planning_steps = check_int("planning_steps", value, low=0)
 
     @property
+    def initial_value(self) -> float:
+        """The Q value of every action of a state before any update."""
+        return self._initial_value
+
+    @property
     def sampler(self) -> Sampler:
         """How planning draws next states: ``"index"`` or ``"graph"``."""
         return self._sampler
@@ -202,7 +212,7 @@ class DynaQ:
         return self._table.index(state)
 
     def q_values(self, state: Hashable, *, dtype: torch.dtype = torch.float64) -> Tensor:
-        """``Q(state, ·)``, zeros for an unknown state.
+        """``Q(state, ·)``, :attr:`initial_value` for an unknown state.
 
         Returns:
             ``(A,)`` new tensor of ``dtype``.
@@ -244,7 +254,7 @@ class DynaQ:
     def _row(self, state: Hashable) -> np.ndarray:
         index = self._table.get(self._check_hashable("state", state))
         if index < 0:
-            return np.zeros(self._num_actions, dtype=np.float64)
+            return np.full(self._num_actions, self._initial_value, dtype=np.float64)
         row: np.ndarray = self._q[index]
         return row
 
@@ -334,6 +344,7 @@ class DynaQ:
         if index >= self._q.shape[0]:
             self._q = _grow(self._q, index + 1)
             self._terminal = _grow(self._terminal, index + 1)
+        self._q[index] = self._initial_value
         return index
 
     def _record(self, s: int, a: int, s2: int, r: float) -> None:
@@ -429,6 +440,7 @@ class DynaQ:
             "planning_steps": self._planning_steps,
             "seed": self._seed,
             "sampler": self._sampler,
+            "initial_value": self._initial_value,
             "states": list(self._table.states),
             "q_table": torch.from_numpy(self._q[:K].copy()),
             "terminal": torch.from_numpy(self._terminal[:K].copy()),
@@ -485,6 +497,8 @@ class DynaQ:
         if sampler not in ("index", "graph"):
             raise ValueError(f"state_dict sampler must be 'index' or 'graph', got {sampler!r}")
         graph = ManipulationGraph.from_json(state_dict["graph"])
+        initial_value = state_dict.get("initial_value", 0.0)  # absent before it existed
+        self._initial_value = check_real("state_dict initial_value", initial_value)
         self._reset_tables()
         for index, state in enumerate(states):
             if self._register("state_dict states", state) != index:

@@ -219,6 +219,17 @@ class ManipulationGraph:
             self._tensors = probabilities, rewards
         return self._tensors
 
+    def count_entries(self) -> tuple[Tensor, Tensor]:
+        """The observed counts as sparse entries, without building an ``(A, K, K)`` tensor.
+
+        Returns:
+            ``index (3, E)`` long rows ``(i, a, j)`` and ``counts (E,)`` long ``N(m_i, a, m_j)
+            > 0``, one entry per observed triple, in first-observed order of ``(i, a)``.
+        """
+        rows = [(i, a, j, n) for (i, a), row in self._edges.items() for j, (n, _) in row.items()]
+        table = torch.tensor(rows, dtype=torch.long).reshape(-1, 4)
+        return table[:, :3].T.contiguous(), table[:, 3].contiguous()
+
     def transition_tensor(self, *, dtype: torch.dtype | None = None) -> Tensor:
         """Action-conditioned transition model ``T[a, i, j] = P(m_j | m_i, a)``.
 

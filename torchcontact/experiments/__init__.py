@@ -1,0 +1,32 @@
+"""Experiment pipelines shared by the ``train/`` scripts, the demo and the tutorials.
+
+Peg-in-hole (:mod:`torchcontact.envs`): :func:`run_round` trains (or evaluates) a
+:class:`~torchcontact.rl.DynaQ` agent on rounds of batched episodes with
+:class:`PotentialShaping` and records the steps; :func:`evaluate` executes the learned policy
+under uncertainty (oracle, raw observation, QMDP over the RBPF belief, neural Q on
+:func:`belief_features`), with :class:`QLookup` mapping manipulation states to Q values.
+"""
+
+from torchcontact.experiments._peg_execution import (
+    NUM_BELIEF_FEATURES,
+    SETTINGS,
+    Evaluation,
+    QLookup,
+    Setting,
+    belief_features,
+    evaluate,
+)
+from torchcontact.experiments._peg_learning import PotentialShaping, RoundResult, run_round
+
+__all__ = [
+    "NUM_BELIEF_FEATURES",
+    "SETTINGS",
+    "Evaluation",
+    "PotentialShaping",
+    "QLookup",
+    "RoundResult",
+    "Setting",
+    "belief_features",
+    "evaluate",
+    "run_round",
+]
