@@ -7,6 +7,7 @@ under uncertainty (oracle, raw observation, QMDP over the RBPF belief, neural Q 
 :func:`belief_features`), with :class:`QLookup` mapping manipulation states to Q values.
 """
 
+from torchcontact.experiments._cli import parse_dataclass
 from torchcontact.experiments._peg_execution import (
     NUM_BELIEF_FEATURES,
     SETTINGS,
@@ -15,6 +16,8 @@ from torchcontact.experiments._peg_execution import (
     Setting,
     belief_features,
     evaluate,
+    evaluate_settings,
+    results_table,
 )
 from torchcontact.experiments._peg_learning import PotentialShaping, RoundResult, run_round
 
@@ -28,5 +31,8 @@ __all__ = [
     "Setting",
     "belief_features",
     "evaluate",
+    "evaluate_settings",
+    "parse_dataclass",
+    "results_table",
     "run_round",
 ]

@@ -13,7 +13,12 @@ import torch
 from numpy.typing import NDArray
 from torch import Tensor
 
-from torchcontact.envs import NUM_CONTACT_CLASSES, PegInHole2DVector, PegInHoleStates
+from torchcontact.envs import (
+    NUM_CONTACT_CLASSES,
+    PegInHole2DVector,
+    PegInHoleConfig,
+    PegInHoleStates,
+)
 from torchcontact.envs._belief import PegBelief, PegInHoleFilter, compose
 from torchcontact.rl import DynaQ, QNetwork, qmdp_values
 
@@ -219,3 +224,35 @@ def _noisy(observation: object) -> Mapping[str, Any]:
     if not isinstance(observation, Mapping):
         raise ValueError("env must have observation='noisy' (a dict of arrays)")
     return observation
+
+
+def evaluate_settings(
+    settings: tuple[Setting, ...],
+    *,
+    num_episodes: int,
+    config: PegInHoleConfig,
+    lookup: QLookup,
+    seed: int,
+    filt: PegInHoleFilter | None = None,
+    network: QNetwork | None = None,
+) -> list[Evaluation]:
+    """:func:`evaluate` each setting on the same ``num_episodes`` seeded episodes."""
+    env = PegInHole2DVector(num_envs=num_episodes, config=config, observation="noisy")
+    return [
+        evaluate(env, setting, lookup=lookup, seed=seed, filt=filt, network=network)
+        for setting in settings
+    ]
+
+
+def results_table(evaluations: list[Evaluation]) -> str:
+    """A markdown table: success rate, mean steps of successes, time per batched decision."""
+    lines = [
+        "| setting | episodes | success | mean steps (successes) | ms per decision (batch) |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for e in evaluations:
+        lines.append(
+            f"| {e.setting} | {e.successes.size} | {100 * e.success_rate:.0f} % | "
+            f"{e.mean_steps:.1f} | {1e3 * e.seconds_per_decision:.1f} |"
+        )
+    return "\n".join(lines)
