@@ -13,13 +13,14 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_demo_writes_plot_and_summary_with_closed_form_agreement(tmp_path: Path) -> None:
-    summary = run(DemoArgs(out=tmp_path, problems=60))
+    summary = run(DemoArgs(out=tmp_path, problems=60, peg_rounds=1, peg_envs=2, peg_episodes=2))
     assert (tmp_path / "demo.png").stat().st_size > 10_000
     assert (tmp_path / "summary.md").read_text() == summary
     slide_error = float(re.search(r"max\(v₀ − μ g t, 0\)\| = ([0-9.e+-]+)", summary).group(1))
     assert slide_error < 1e-12
     assert "| lemke (loop) |" in summary
     assert "60/60" in summary
+    assert "| qmdp | 2 |" in summary
 
 
 def test_contact_benchmark_quick_mode_prints_its_table() -> None:
