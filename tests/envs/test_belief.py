@@ -1,0 +1,94 @@
+"""The peg-in-hole belief model and filter: exact measurement model, graph rows, tracking."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from torchcontact.envs import PegInHole2DVector, PegInHoleConfig
+from torchcontact.envs._belief import (
+    PegControl,
+    PegInHoleBeliefModel,
+    PegInHoleFilter,
+    PegTransitions,
+    compose,
+)
+from torchcontact.experiments import PotentialShaping, run_round
+from torchcontact.rl import DynaQ
+
+CONFIG = PegInHoleConfig(max_steps=25)
+
+
+@pytest.fixture(scope="module")
+def fitted() -> tuple[PegInHoleBeliefModel, DynaQ, PegTransitions]:
+    env = PegInHole2DVector(num_envs=4, config=CONFIG)
+    agent = DynaQ(7, epsilon=0.5, planning_steps=0, seed=1)
+    rounds = [run_round(env, agent, seed=s, shaping=PotentialShaping(5.0)) for s in range(2)]
+    data = PegTransitions.concat([r.transitions for r in rounds])
+    return PegInHoleBeliefModel.fit(data, agent.graph, task=env.task), agent, data
+
+
+def test_vision_model_is_the_exact_pose_composition(
+    fitted: tuple[PegInHoleBeliefModel, DynaQ, PegTransitions],
+) -> None:
+    model, _, _ = fitted
+    filt = PegInHoleFilter(model, num_particles=24)
+    generator = torch.Generator().manual_seed(0)
+    gripper = torch.rand(5, 3, generator=generator, dtype=torch.float64) - 0.5
+    observation = {"peg_pose": gripper, "gripper_pose": gripper, "tactile": np.zeros((5, 14))}
+    belief = filt.init(observation)
+    control = PegControl(
+        gripper_before=gripper, gripper_after=gripper, actions=torch.zeros(5, dtype=torch.long)
+    )
+    dynamics = model.mode_dynamics(belief.rbpf, control)
+    x = torch.randn(5, 3, generator=generator, dtype=torch.float64) * 0.05
+    predicted = torch.einsum("bkij,bj->bki", dynamics.H, x) + dynamics.d
+    torch.testing.assert_close(
+        predicted, compose(gripper, x)[:, None].expand(5, 24, 3), rtol=0, atol=1e-15
+    )
+    assert dynamics.transition_rows is not None
+    torch.testing.assert_close(
+        dynamics.transition_rows.sum(-1), torch.ones(5, 24, dtype=torch.float64)
+    )
+
+
+def test_transition_rows_shrink_the_graph_counts_toward_the_class_level(
+    fitted: tuple[PegInHoleBeliefModel, DynaQ, PegTransitions],
+) -> None:
+    model, agent, _ = fitted
+    states = model.task.states
+    index, counts = agent.graph.count_entries()
+    i, a = int(index[0, 0]), int(index[1, 0])
+    source = states.index(agent.graph.states[i])
+    next_classes = torch.zeros(24, dtype=torch.float64)
+    mask = (index[0] == i) & (index[1] == a)
+    for j, n in zip(index[2][mask].tolist(), counts[mask].tolist(), strict=True):
+        next_classes[states.index(agent.graph.states[j]) % 24] += n
+    prior = model.class_transition[a, source % 24]
+    expected = (next_classes + prior) / (next_classes.sum() + 1.0)  # graph_prior = 1
+    torch.testing.assert_close(model.state_transition[model.state_row[source], a], expected)
+
+
+def test_filter_tracks_the_peg_better_than_the_camera(
+    fitted: tuple[PegInHoleBeliefModel, DynaQ, PegTransitions],
+) -> None:
+    model, _, _ = fitted
+    env = PegInHole2DVector(num_envs=6, config=CONFIG, observation="noisy")
+    filt = PegInHoleFilter(model, num_particles=32)
+    observation, info = env.reset(seed=50)
+    belief = filt.init(observation)
+    rng = np.random.default_rng(0)
+    generator = torch.Generator().manual_seed(0)
+    camera, tracked = [], []
+    for _ in range(20):
+        actions = rng.integers(0, 7, size=6)
+        observation, _, terminated, truncated, info = env.step(actions)
+        belief = filt.step(belief, actions, observation, generator=generator)
+        truth = torch.as_tensor(info["peg_pose"])[:, :2]
+        camera.append((torch.as_tensor(observation["peg_pose"])[:, :2] - truth).norm(dim=-1))
+        tracked.append((filt.pose_mean(belief)[:, :2] - truth).norm(dim=-1))
+        assert not (terminated | truncated).any()
+    rmse_camera = torch.stack(camera[5:]).pow(2).mean().sqrt()
+    rmse_filter = torch.stack(tracked[5:]).pow(2).mean().sqrt()
+    assert rmse_filter < 0.6 * rmse_camera
