@@ -253,10 +253,7 @@ class PegInHoleBeliefModel:
         actions = control.actions
         B = actions.shape[0]
         gripper = control.gripper_after
-        cos, sin = torch.cos(gripper[:, 2]), torch.sin(gripper[:, 2])
-        H = torch.zeros(B, 3, 3, dtype=_F64)
-        H[:, 0, 0], H[:, 0, 1], H[:, 1, 0], H[:, 1, 1] = cos, -sin, sin, cos
-        H[:, 2, 2] = 1.0
+        H = _vision_matrix(gripper)
         R = torch.diag(_tensor(self.task.config.pose_noise_std, _F64) ** 2)
         ids = self.particle_state_ids(belief, control.gripper_before)
         rows = self.state_transition[self.state_row[ids], actions[:, None]]  # (B, N, K)
@@ -372,6 +369,16 @@ def compose(gripper: Tensor, grasp: Tensor) -> Tensor:
     )
 
 
+def _vision_matrix(gripper: Tensor) -> Tensor:
+    """``(B, 3, 3)`` ``H`` with ``H x + g = g ⊕ x`` for grippers ``g (B, 3)``: the rotation by
+    the gripper's angle on ``(u, w)``, identity on the angle."""
+    cos, sin = torch.cos(gripper[:, 2]), torch.sin(gripper[:, 2])
+    H = torch.zeros(gripper.shape[0], 3, 3, dtype=_F64)
+    H[:, 0, 0], H[:, 0, 1], H[:, 1, 0], H[:, 1, 1] = cos, -sin, sin, cos
+    H[:, 2, 2] = 1.0
+    return H
+
+
 def _fit_motion(data: PegTransitions, min_samples: int) -> tuple[Tensor, Tensor]:
     """Mean ``(A, K, 3)`` and covariance ``(A, K, 3, 3)`` of the grasp displacement."""
     A, K = len(ACTION_NAMES), NUM_CONTACT_CLASSES
@@ -478,10 +485,7 @@ class PegInHoleFilter:
         y, gripper, _ = self._unpack(observation)
         prior = self.model.grasp_prior
         B = y.shape[0]
-        cos, sin = torch.cos(gripper[:, 2]), torch.sin(gripper[:, 2])
-        H = torch.zeros(B, 3, 3, dtype=_F64)
-        H[:, 0, 0], H[:, 0, 1], H[:, 1, 0], H[:, 1, 1] = cos, -sin, sin, cos
-        H[:, 2, 2] = 1.0
+        H = _vision_matrix(gripper)
         R = torch.diag(_tensor(self.model.task.config.pose_noise_std, _F64) ** 2)
         start = Gaussian(prior.mean.expand(B, 3), prior.cov.expand(B, 3, 3))
         posterior, _ = kf_update(start, y, H=H, d=gripper, R=R)
