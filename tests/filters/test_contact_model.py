@@ -1,6 +1,7 @@
 """The planar contact model of the RBPF: its step against the simulator, its linearization
-against closed-form sliding and automatic differentiation, the tactile likelihood against a
-hand count, and the filter tracking a pushed box better than its camera."""
+against closed-form sliding, automatic differentiation and central differences of the step
+(with the consistency check against ``is_consistent``), the tactile likelihood against a hand
+count, and the filter tracking a pushed box better than its camera."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import pytest
 import torch
 
 from tests.filters.test_rbpf import _prior, _problem, _run
+from torchcontact.contact import is_consistent, solve_mode
 from torchcontact.filters import (
     RBPF,
     Gaussian,
@@ -23,7 +25,15 @@ from torchcontact.filters import (
     empirical_transition,
 )
 from torchcontact.geometry import HalfPlane, Polygon
-from torchcontact.sim import Body, Rollout, Scene, pushed_box_rollout, pushed_box_scene
+from torchcontact.sim import (
+    Body,
+    Rollout,
+    Scene,
+    SceneState,
+    contact_problem,
+    pushed_box_rollout,
+    pushed_box_scene,
+)
 from torchcontact.states import TactileArray
 
 F64 = torch.float64
@@ -97,6 +107,154 @@ def test_linearization_matches_automatic_differentiation() -> None:
         jac = torch.func.jacrev(lambda z, m=mode: model.step(z, mode=m, control=control))(x)
         torch.testing.assert_close(F[k], jac, atol=1e-5, rtol=0)
         torch.testing.assert_close(F[k] @ x + c[k], model.step(x, mode=mode, control=control))
+
+
+def _reference_linearization(
+    model: PlanarContactModel, x: torch.Tensor, control: KinematicControl
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The documented linearization, slowly: for every mode and coordinate ``j``, the step
+    (``model.step``: ``contact_problem`` and ``solve_mode`` on the whole scene) at ``x`` and
+    ``x ± ε e_j``, central differences or, at a kink, the smaller one-sided one; the
+    consistency from ``is_consistent`` on the problem at ``x`` with the mode's gaps closed up
+    to the dead zone.
+
+    Returns ``F (K, 6, 6)``, ``consistent (K,)`` and ``solvable (K,)`` (``solve_mode`` met
+    the mode's equalities at ``x``)."""
+    eps, gap = model.fd_step, model.consistency_gap
+    Fs, consistent, solvable = [], [], []
+    steps = eps * torch.eye(6, dtype=F64)
+    for k in range(model.num_modes):
+        # The step at x, x + ε e_j and x − ε e_j, each point a problem of its own.
+        points = torch.cat([x[None], x + steps, x - steps])
+        f = model.step(points, mode=torch.tensor(k).expand(13), control=control)
+        columns = []
+        for j in range(6):
+            forward, backward = (f[1 + j] - f[0]) / eps, (f[0] - f[7 + j]) / eps
+            big, small = sorted([float(forward.norm()), float(backward.norm())], reverse=True)
+            if big > 10.0 * (small + 1.0):  # a kink: the smaller one-sided difference
+                columns.append(forward if forward.norm() <= backward.norm() else backward)
+            else:
+                columns.append(0.5 * (forward + backward))
+        Fs.append(torch.stack(columns, dim=-1))
+        modes = model.modes[k][None]
+        state = SceneState(
+            q=x[None, None, :3], v=x[None, None, 3:], q_kinematic=control.q[None], mode=modes
+        )
+        problem, _ = contact_problem(model.scene, state, control=control.v[None])
+        solvable.append(solve_mode(problem, modes).status.converged[0])
+        closed = problem.phi - problem.phi.clamp(-gap, gap)
+        problem = replace(problem, phi=torch.where(modes >= 1, closed, problem.phi))
+        solution = solve_mode(problem, modes)
+        consistent.append(is_consistent(problem, solution, atol=model.consistency_tolerance)[0])
+    return torch.stack(Fs), torch.stack(consistent), torch.stack(solvable)
+
+
+def _gripper_scene() -> Scene:
+    """A triangle on the ground between two kinematic fingers, by a tilted static wall: a
+    half-plane, polygons of 3 and 4 vertices, two kinematic bodies and a static polygon."""
+    return Scene(
+        bodies=(
+            Body("ground", HalfPlane.ground(), kind="static"),
+            Body("triangle", Polygon.triangle(0.08, 0.08 * math.sqrt(3) / 2), mass=0.2),
+            Body("left", Polygon.box(0.01, 0.03), kind="kinematic"),
+            Body("right", Polygon.box(0.01, 0.03), kind="kinematic"),
+            Body(
+                "wall",
+                Polygon.box(0.02, 0.2),
+                kind="static",
+                pose=torch.tensor([0.06, 0.1, 0.1], dtype=F64),
+            ),
+        ),
+        friction=0.5,
+        h=H,
+    )
+
+
+def _linearization_cases() -> list[tuple[PlanarContactModel, torch.Tensor, KinematicControl]]:
+    """Models and ``(B, 6)`` points with ``(B, Nk, 3)`` controls: a box pushed by a finger
+    at points of a rollout moved a few millimetres off (as a filter's mean is), and with the
+    finger's corner on the diagonal off the box's corner (the corner's closest edge switches
+    within the stencil: a kink); the gripper scene."""
+    _, train, controls = _pushed_box(8, 60, seed=0)
+    table, _, _ = collect_modes(train.mode)
+    scene = pushed_box_scene(friction=MU, h=H, mass=4.0)  # heavier than in the rollouts
+    box = PlanarContactModel(scene=scene, modes=table, **_noise(len(table)))
+    steps = torch.tensor([2, 12, 16, 21, 27, 35, 44, 52])
+    x = torch.cat([train.q[steps, 1, 0], train.v[steps, 1, 0]], -1)
+    gen = torch.Generator().manual_seed(4)
+    offset = torch.tensor([2e-3, 1e-3, 2e-2, 5e-2, 5e-2, 0.2], dtype=F64)
+    x = x + offset * torch.randn(x.shape, generator=gen, dtype=F64)
+    corner = torch.tensor([[0.0, HEIGHT / 2, 0.0, 0.1, 0.0, 0.0]], dtype=F64)
+    # The finger's lower right corner 2 mm left of and above the box's upper left corner.
+    finger = torch.tensor([[[-WIDTH / 2 - 0.002 - 0.01, HEIGHT + 0.002 + 0.03, 0.0]]], dtype=F64)
+    box_control = KinematicControl(
+        q=torch.cat([train.q_kinematic[steps, 1], finger]),
+        v=torch.cat([controls[steps, 1], torch.tensor([[[0.3, 0.0, 0.0]]], dtype=F64)]),
+    )
+    x = torch.cat([x, corner])
+
+    scene = _gripper_scene()
+    # Slots: triangle on the ground 0-2, triangle on the left finger 3-5, the left finger's
+    # corners on the triangle 6-9, the same on the right 10-12 and 13-16, the wall 17-23.
+    rows = [
+        {},
+        {0: 1, 1: 1},
+        {0: 2, 1: 2, 7: 1},
+        {0: 3, 1: 1, 14: 2},
+        {0: 1, 1: 1, 18: 1},
+        {6: 1, 7: 1, 13: 1, 14: 1},
+    ]
+    table = torch.zeros(len(rows), scene.num_slots, dtype=torch.long)
+    for k, row in enumerate(rows):
+        for slot, mode in row.items():
+            table[k, slot] = mode
+    gripper = PlanarContactModel(scene=scene, modes=table, **_noise(len(table)))
+    pose = torch.tensor([[0.0, 0.0232, 0.0], [0.01, 0.025, 0.05], [0.02, 0.021, -0.1]], dtype=F64)
+    twist = torch.tensor([[0.0, 0.0, 0.0], [0.05, -0.02, 0.3], [-0.1, 0.01, -0.5]], dtype=F64)
+    fingers = torch.tensor([[-0.032, 0.02, 0.0], [0.031, 0.02, 0.0]], dtype=F64)
+    gripper_control = KinematicControl(
+        q=fingers + pose[:, None, :1] * torch.tensor([1.0, 0.0, 0.0], dtype=F64),
+        v=torch.tensor([[0.1, 0.0, 0.0], [-0.1, 0.0, 0.0]], dtype=F64).expand(3, 2, 3),
+    )
+    return [
+        (box, x, box_control),
+        (gripper, torch.cat([pose, twist], -1), gripper_control),
+    ]
+
+
+def test_linearization_matches_central_differences_of_the_step() -> None:
+    for model, x, control in _linearization_cases():
+        F, c = model.linearize(x, control=control)
+        prior = Gaussian(x, torch.eye(6, dtype=F64).expand(len(x), 6, 6) * 1e-4)
+        dynamics = model.mode_dynamics(RBPF(model, 16).init(prior), control)
+        assert dynamics.mode_log_weight is not None
+        seen_consistent = seen_unsolvable = 0
+        for b in range(len(x)):
+            u = KinematicControl(q=control.q[b], v=control.v[b])
+            F_ref, consistent, solvable = _reference_linearization(model, x[b], u)
+            # Relative to each mode's largest entry (about 1/h), 1e-5 (measured: 2e-6). Where
+            # solve_mode cannot meet a mode's equalities at the point, its regularised answer
+            # is the step, and it amplifies round-off: the reference itself moves by up to
+            # 1.1e-3 when x moves by 1e-15 (measured), so 3e-3 there.
+            scale = F_ref.abs().amax(dim=(-2, -1), keepdim=True).clamp_min(1.0)
+            tolerance = torch.where(solvable, 1e-5, 3e-3).to(F64)[:, None, None]
+            alone, _ = model.linearize(x[b], control=u)  # the batch does not matter
+            for linearized in (F[b], dynamics.F[b], alone):
+                assert bool(((linearized - F_ref).abs() <= tolerance * scale).all())
+            # c makes the linearization exact at the point: F x + c is the step there (measured
+            # 2e-9 and, for the unmet modes, 2e-6 at most).
+            for k in range(model.num_modes):
+                step = model.step(x[b], mode=torch.tensor(k), control=u)
+                atol = 1e-8 if solvable[k] else 1e-5 * float(scale[k])
+                torch.testing.assert_close(F[b, k] @ x[b] + c[b, k], step, atol=atol, rtol=0)
+            penalty = torch.where(consistent, 0.0, -model.inconsistency_penalty).to(F64)
+            torch.testing.assert_close(dynamics.mode_log_weight[b], penalty)
+            seen_consistent += int(consistent.sum())
+            seen_unsolvable += int((~solvable).sum())
+        # The cases hold consistent modes, inconsistent ones, and modes whose equalities
+        # contradict each other at the point (solve_mode's regularised answer is their step).
+        assert 0 < seen_consistent < model.num_modes * len(x)
+        assert seen_unsolvable > 0
 
 
 def _pushed_box(batch: int, steps: int, seed: int) -> tuple[Scene, Rollout, torch.Tensor]:
@@ -294,3 +452,9 @@ def test_validation_names_the_field() -> None:
     bad = KinematicControl(q=torch.zeros(2, 3, dtype=F64), v=torch.zeros(1, 3, dtype=F64))
     with pytest.raises(ValueError, match=r"control\.q"):
         model.linearize(x, control=bad)
+    # One scene serves every batch entry of the linearization: its friction is a scalar.
+    batched = replace(scene, friction=torch.tensor([0.3, 0.5], dtype=F64))
+    model = PlanarContactModel(scene=batched, modes=table, **_noise(2))
+    control = KinematicControl(q=torch.zeros(1, 3, dtype=F64), v=torch.zeros(1, 3, dtype=F64))
+    with pytest.raises(ValueError, match="scene: the linearization needs scalar friction"):
+        model.linearize(x, control=control)

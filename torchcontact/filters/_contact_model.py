@@ -3,13 +3,21 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from torchcontact.contact import is_consistent, solve_mode
+from torchcontact.contact import solve_mode
 from torchcontact.filters._checks import describe
+from torchcontact.filters._planar_linearization import (
+    ModeTable,
+    SlotLayout,
+    linearize_modes,
+    mode_table,
+    slot_layout,
+)
 from torchcontact.filters._rbpf import RBPFBelief
 from torchcontact.filters._switching import LinearSwitchingModel, ModeDynamics
 from torchcontact.sim import Scene, SceneState, contact_problem
@@ -18,7 +26,6 @@ from torchcontact.states import TactileArray, object_contacts
 STATE_DIM = 6  # (x, y, θ, vx, vy, ω)
 OBS_DIM = 3  # (x, y, θ) from vision
 PLANAR_MODES = 4  # separated, sticking, sliding along +t, sliding along −t
-_KINK_RATIO = 10.0  # one-sided differences this far apart straddle a discontinuity
 
 
 @dataclass(frozen=True, eq=False)
@@ -57,15 +64,20 @@ class PlanarContactModel:
     plus the process noise :math:`Q_k`. Vision measures the pose: :math:`y = (x, y, \theta)
     + N(0, R)` (the angle must be continuous, not wrapped, like the simulator's).
 
-    The Jacobian is a central difference in float64 (``2·6`` extra evaluations of the step,
-    batched with the centre point into one assembly and one ``solve_mode``; the default step
-    of 3e-5 balances the curvature of the geometry against the solver's round-off): on a box
-    pushed by a finger it matches reverse-mode automatic differentiation to 1e-5 (entries up
-    to ``1/h = 100``) at a tenth of the cost of ``torch.func``'s Jacobians. At a kink of the
-    geometry (a slot's nearest feature switching inside the stencil) the two one-sided
-    differences disagree; there the smaller one is used. A mode whose active slots are not
-    candidates at :math:`\bar x` (out of the scene's margin) acts as if those slots were
-    separated.
+    The Jacobian is a central difference in float64 (``2·6`` extra evaluations of the step;
+    the default step of 3e-5 balances the curvature of the geometry against the solver's
+    round-off): on a box pushed by a finger it matches reverse-mode automatic differentiation
+    to 1e-5 (entries up to ``1/h = 100``). All points and modes are evaluated in one batch,
+    with each mode's constraint system reduced to the slots it activates (a few tensor
+    operations on small tensors: about 2 ms for 5 modes on one CPU thread, 30 ms for a batch
+    of 50 means and 12 modes). At a kink of the geometry (a slot's nearest feature switching
+    inside the stencil) the two one-sided differences disagree; there the smaller one is
+    used. A mode whose active slots are not candidates at :math:`\bar x` (out of the scene's
+    margin) acts as if those slots were separated (the candidates are those at :math:`\bar
+    x` for the whole stencil). Where a mode's equalities contradict each other at
+    :math:`\bar x` (a finger sticking to a box that slides on the ground), its step is
+    ``solve_mode``'s regularised answer, which amplifies round-off: its linearization is
+    reproducible to about 1e-3 only (such modes are usually inconsistent, see below).
 
     Physics as evidence: a mode's step at :math:`\bar x` may contradict the mode itself (a
     finger that stopped would have to pull the box it was pushing, friction of a sliding
@@ -258,8 +270,7 @@ class PlanarContactModel:
         batch = torch.broadcast_shapes(x.shape[:-1], mode.shape)
         q_kin, v_kin = self._control(control, batch, x.dtype)
         modes = self.modes[mode.expand(batch)]
-        x_next, _ = self._step(x.expand(*batch, 6), modes, q_kin, v_kin)
-        return x_next
+        return self._step(x.expand(*batch, 6), modes, q_kin, v_kin)
 
     def linearize(
         self, x: Tensor, *, control: KinematicControl | None = None
@@ -281,52 +292,30 @@ class PlanarContactModel:
     ) -> tuple[Tensor, Tensor, Tensor]:
         """``F``, ``c`` and ``(*B, K)`` bool: the mode is consistent at ``x``."""
         _check_state(x)
-        K, n = self.num_modes, STATE_DIM
         batch = x.shape[:-1]
         x = x.to(torch.float64)
         q_kin, v_kin = self._control(control, batch, torch.float64)
-        # Stencil: the centre, +ε e_j and −ε e_j for every coordinate j, and the centre again
-        # with the mode's contacts closed (φ = 0) for the consistency check; all in one batch.
-        eps, size = self.fd_step, 2 * n + 2
-        basis = eps * torch.eye(n, dtype=torch.float64, device=x.device)
-        zero = basis.new_zeros(1, n)
-        offsets = torch.cat([zero, basis, -basis, zero])  # (size, n)
-        points = (x[..., None, None, :] + offsets).expand(*batch, K, size, n)
-        modes = self.modes.to(x.device)[:, None, :].expand(*batch, K, size, -1)
-        Nk = q_kin.shape[-2]
-        q_kin = q_kin[..., None, None, :, :].expand(*batch, K, size, Nk, 3)
-        v_kin = v_kin[..., None, None, :, :].expand(*batch, K, size, Nk, 3)
-        touching = (torch.arange(size, device=x.device) == size - 1).expand(*batch, K, size)
-        out, consistent = self._step(points, modes, q_kin, v_kin, touching=touching)
-        centre, plus, minus = out[..., 0, :], out[..., 1 : 1 + n, :], out[..., 1 + n : 1 + 2 * n, :]
-        forward = (plus - centre.unsqueeze(-2)) / eps  # (*B, K, j, i) = ∂f_i/∂x_j
-        backward = (centre.unsqueeze(-2) - minus) / eps
-        central = 0.5 * (forward + backward)
-        size_f = torch.linalg.vector_norm(forward, dim=-1, keepdim=True)
-        size_b = torch.linalg.vector_norm(backward, dim=-1, keepdim=True)
-        kink = torch.maximum(size_f, size_b) > _KINK_RATIO * (torch.minimum(size_f, size_b) + 1.0)
-        one_sided = torch.where(size_f <= size_b, forward, backward)
-        F = torch.where(kink, one_sided, central).mT
-        c = centre - (F @ x.unsqueeze(-2).unsqueeze(-1)).squeeze(-1)
-        return F, c, consistent[..., -1]
+        flat = x.reshape(-1, STATE_DIM)
+        kinematic = (flat.shape[0], q_kin.shape[-2], 3)
+        F, c, consistent = linearize_modes(
+            self._layout,
+            self._mode_table,
+            flat,
+            q_kin.reshape(kinematic),
+            v_kin.reshape(kinematic),
+            fd_step=self.fd_step,
+            consistency_gap=self.consistency_gap,
+            consistency_tolerance=self.consistency_tolerance,
+        )
+        K = self.num_modes
+        return (
+            F.reshape(*batch, K, STATE_DIM, STATE_DIM),
+            c.reshape(*batch, K, STATE_DIM),
+            consistent.reshape(*batch, K),
+        )
 
-    def _step(
-        self,
-        x: Tensor,
-        modes: Tensor,
-        q_kin: Tensor,
-        v_kin: Tensor,
-        *,
-        touching: Tensor | None = None,
-    ) -> tuple[Tensor, Tensor]:
-        """``f`` on batches: x ``(*P, 6)``, modes ``(*P, S)``, q/v_kin ``(*P, Nk, 3)``.
-
-        Also returns ``(*P,)`` bool: the step agrees with its mode (``is_consistent``). Where
-        ``touching`` ``(*P,)`` is set, gaps of the mode's active slots within
-        ``±consistency_gap`` are taken as closed: a mean a millimetre off a contact (whose
-        ``φ/h`` correction would turn its impulse around) does not count against the mode,
-        while a contact held across a wider gap (a box "stuck" to a finger it has left) does.
-        """
+    def _step(self, x: Tensor, modes: Tensor, q_kin: Tensor, v_kin: Tensor) -> Tensor:
+        """``f`` on batches: x ``(*P, 6)``, modes ``(*P, S)``, q/v_kin ``(*P, Nk, 3)``."""
         batch = x.shape[:-1]
         flat = x.reshape(-1, 6)
         P = flat.shape[0]
@@ -339,18 +328,9 @@ class PlanarContactModel:
         problem, _ = contact_problem(
             self.scene, state, control=v_kin.reshape(P, *v_kin.shape[-2:]).to(x.dtype)
         )
-        if touching is not None:
-            closed = touching.reshape(P, 1) & (state.mode >= 1)
-            dead_zone = self.consistency_gap
-            phi = problem.phi - problem.phi.clamp(-dead_zone, dead_zone)
-            phi = torch.where(closed, phi, problem.phi)
-            original = problem.phi
-            problem = problem.map_tensors(lambda t: phi if t is original else t)
-        solution = solve_mode(problem, state.mode)
-        consistent = is_consistent(problem, solution, atol=self.consistency_tolerance)
-        v_next = solution.v_next
+        v_next = solve_mode(problem, state.mode).v_next
         x_next = torch.cat([flat[:, :3] + self.scene.h * v_next, v_next], -1)
-        return x_next.reshape(*batch, 6), consistent.reshape(batch)
+        return x_next.reshape(*batch, 6)
 
     # ------------------------------------------------------------------------------------------
     # tactile evidence
@@ -420,6 +400,16 @@ class PlanarContactModel:
         H = self.Q.new_zeros(self.num_modes, OBS_DIM, STATE_DIM)
         H[:, :, :OBS_DIM] = torch.eye(OBS_DIM, dtype=self.Q.dtype)
         return H
+
+    @cached_property
+    def _layout(self) -> SlotLayout:
+        """The scene's slot tables for the linearization, built at its first use."""
+        return slot_layout(self.scene, self.device)
+
+    @cached_property
+    def _mode_table(self) -> ModeTable:
+        """:attr:`modes` as the linearization uses them, built at its first use."""
+        return mode_table(self._layout, self.modes)
 
     def _control(
         self, control: KinematicControl | None, batch: torch.Size, dtype: torch.dtype
