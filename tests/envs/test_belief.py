@@ -92,3 +92,34 @@ def test_filter_tracks_the_peg_better_than_the_camera(
     rmse_camera = torch.stack(camera[5:]).pow(2).mean().sqrt()
     rmse_filter = torch.stack(tracked[5:]).pow(2).mean().sqrt()
     assert rmse_filter < 0.6 * rmse_camera
+
+
+def test_restart_replaces_exactly_the_entries_of_new_episodes(
+    fitted: tuple[PegInHoleBeliefModel, DynaQ, PegTransitions],
+) -> None:
+    model, _, _ = fitted
+    env = PegInHole2DVector(num_envs=3, config=CONFIG, observation="noisy")
+    filt = PegInHoleFilter(model, num_particles=24)
+    observation, _ = env.reset(seed=7)
+    generator = torch.Generator().manual_seed(0)
+    belief = filt.init(observation)
+    for action in (4, 1):
+        observation, *_ = env.step(np.full(3, action))
+        belief = filt.step(belief, np.full(3, action), observation, generator=generator)
+    other, _ = PegInHole2DVector(num_envs=3, config=CONFIG, observation="noisy").reset(seed=99)
+    where = np.array([False, True, False])
+    restarted = filt.restart(belief, where, other)
+    fresh = filt.init(other)
+    pairs = [(restarted.gripper, fresh.gripper, belief.gripper)]
+    for name in ("modes", "log_weights", "log_evidence", "history", "degenerate"):
+        pairs.append(tuple(getattr(b.rbpf, name) for b in (restarted, fresh, belief)))
+    for name in ("gaussians", "prior"):
+        for part in ("mean", "cov"):
+            pairs.append(
+                tuple(getattr(getattr(b.rbpf, name), part) for b in (restarted, fresh, belief))
+            )
+    for got, new, old in pairs:
+        assert torch.equal(got[1], new[1])
+        assert torch.equal(got[0], old[0])
+        assert torch.equal(got[2], old[2])
+    assert not torch.equal(fresh.gripper[0], belief.gripper[0])  # the restart changed something

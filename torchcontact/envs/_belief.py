@@ -11,7 +11,6 @@ at the particle's own manipulation state (its pose cell and contact class).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 from typing import Any
@@ -22,10 +21,11 @@ from numpy.typing import NDArray
 from torch import Tensor
 
 from torchcontact.envs._states import NUM_CONTACT_CLASSES
-from torchcontact.envs._task import ACTION_NAMES, PegInHoleTask
+from torchcontact.envs._task import ACTION_NAMES, PegInHoleTask, _wrap
 from torchcontact.filters import RBPF, Gaussian, ModeDynamics, RBPFBelief, kf_update
 from torchcontact.filters._rbpf import Proposal
 from torchcontact.filters._resampling import ResamplingMethod
+from torchcontact.geometry import rotation_matrix
 from torchcontact.states import ManipulationGraph
 
 _F64 = torch.float64
@@ -33,10 +33,6 @@ _F64 = torch.float64
 _NOISE_FLOOR = (2e-4**2, 2e-4**2, 3e-3**2)
 #: Process noise of a (action, class) pair never seen in the data: (5 mm, 5 mm, 0.05 rad)².
 _UNSEEN_NOISE = (5e-3**2, 5e-3**2, 0.05**2)
-
-
-def _wrap(angle: Tensor) -> Tensor:
-    return angle - 2 * math.pi * torch.floor((angle + math.pi) / (2 * math.pi))
 
 
 def _tensor(value: Any, dtype: torch.dtype) -> Tensor:
@@ -254,7 +250,6 @@ class PegInHoleBeliefModel:
         B = actions.shape[0]
         gripper = control.gripper_after
         H = _vision_matrix(gripper)
-        R = torch.diag(_tensor(self.task.config.pose_noise_std, _F64) ** 2)
         ids = self.particle_state_ids(belief, control.gripper_before)
         rows = self.state_transition[self.state_row[ids], actions[:, None]]  # (B, N, K)
         return ModeDynamics(
@@ -263,11 +258,16 @@ class PegInHoleBeliefModel:
             Q=self.process_cov[actions],
             H=H.unsqueeze(1).expand(B, K, 3, 3),
             d=gripper.unsqueeze(1).expand(B, K, 3),
-            R=R.expand(K, 3, 3),
+            R=self.vision_cov.expand(K, 3, 3),
             transition_rows=rows,
         )
 
     # -- what the filter and the policies ask ----------------------------------------------
+
+    @property
+    def vision_cov(self) -> Tensor:
+        """``(3, 3)`` covariance of the camera's peg pose, ``diag(σ²)`` of the task."""
+        return torch.diag(_tensor(self.task.config.pose_noise_std, _F64) ** 2)
 
     def particle_state_ids(self, belief: RBPFBelief, gripper: Tensor) -> Tensor:
         """Manipulation-state ids of the particles: their mean grasp placed in the gripper
@@ -372,9 +372,8 @@ def compose(gripper: Tensor, grasp: Tensor) -> Tensor:
 def _vision_matrix(gripper: Tensor) -> Tensor:
     """``(B, 3, 3)`` ``H`` with ``H x + g = g ⊕ x`` for grippers ``g (B, 3)``: the rotation by
     the gripper's angle on ``(u, w)``, identity on the angle."""
-    cos, sin = torch.cos(gripper[:, 2]), torch.sin(gripper[:, 2])
     H = torch.zeros(gripper.shape[0], 3, 3, dtype=_F64)
-    H[:, 0, 0], H[:, 0, 1], H[:, 1, 0], H[:, 1, 1] = cos, -sin, sin, cos
+    H[:, :2, :2] = rotation_matrix(gripper[:, 2])
     H[:, 2, 2] = 1.0
     return H
 
@@ -485,9 +484,8 @@ class PegInHoleFilter:
         y, gripper, _ = self._unpack(observation)
         prior = self.model.grasp_prior
         B = y.shape[0]
-        H = _vision_matrix(gripper)
-        R = torch.diag(_tensor(self.model.task.config.pose_noise_std, _F64) ** 2)
         start = Gaussian(prior.mean.expand(B, 3), prior.cov.expand(B, 3, 3))
+        H, R = _vision_matrix(gripper), self.model.vision_cov
         posterior, _ = kf_update(start, y, H=H, d=gripper, R=R)
         return PegBelief(self.rbpf.init(posterior), gripper)
 
@@ -533,23 +531,20 @@ class PegInHoleFilter:
             mask = where.reshape(-1, *(1,) * (old.ndim - 1))
             return torch.where(mask, new, old)
 
+        def merge(new: Any, old: Any) -> Any:
+            if isinstance(old, Tensor):
+                return pick(new, old)
+            if isinstance(old, Gaussian):
+                return Gaussian(pick(new.mean, old.mean), pick(new.cov, old.cov))
+            return old  # the number of modes
+
         old, new = belief.rbpf, fresh.rbpf
-        rbpf = replace(
-            old,
-            modes=pick(new.modes, old.modes),
-            log_weights=pick(new.log_weights, old.log_weights),
-            gaussians=Gaussian(
-                pick(new.gaussians.mean, old.gaussians.mean),
-                pick(new.gaussians.cov, old.gaussians.cov),
-            ),
-            log_evidence=pick(new.log_evidence, old.log_evidence),
-            history=pick(new.history, old.history),
-            degenerate=pick(new.degenerate, old.degenerate),
-            prior=Gaussian(
-                pick(new.prior.mean, old.prior.mean), pick(new.prior.cov, old.prior.cov)
-            ),
-        )
-        return PegBelief(rbpf, pick(fresh.gripper, belief.gripper))
+        merged = {f.name: merge(getattr(new, f.name), getattr(old, f.name)) for f in fields(old)}
+        return PegBelief(replace(old, **merged), pick(fresh.gripper, belief.gripper))
+
+    def particle_poses(self, belief: PegBelief) -> Tensor:
+        """``(B, N, 3)`` each particle's mean peg pose in the world frame."""
+        return compose(belief.gripper.unsqueeze(1), belief.rbpf.gaussians.mean)
 
     def particle_states(self, belief: PegBelief) -> tuple[Tensor, Tensor]:
         """Each particle's manipulation-state id ``(B, N)`` and weight ``(B, N)``."""
@@ -558,8 +553,8 @@ class PegInHoleFilter:
 
     def pose_mean(self, belief: PegBelief) -> Tensor:
         """``(B, 3)`` the weighted mean of the peg's world pose."""
-        pose = compose(belief.gripper.unsqueeze(1), belief.rbpf.gaussians.mean)
-        return (belief.rbpf.log_weights.exp().unsqueeze(-1) * pose).sum(1)
+        weights = belief.rbpf.log_weights.exp().unsqueeze(-1)
+        return (weights * self.particle_poses(belief)).sum(1)
 
     def _unpack(self, observation: Mapping[str, Any]) -> tuple[Tensor, Tensor, Tensor]:
         try:
