@@ -14,7 +14,7 @@ from torchcontact.envs._belief import (
     PegTransitions,
     compose,
 )
-from torchcontact.experiments import PotentialShaping, run_round
+from torchcontact.experiments import PotentialShaping, QLookup, run_round
 from torchcontact.rl import DynaQ
 
 CONFIG = PegInHoleConfig(max_steps=25)
@@ -123,3 +123,19 @@ def test_restart_replaces_exactly_the_entries_of_new_episodes(
         assert torch.equal(got[0], old[0])
         assert torch.equal(got[2], old[2])
     assert not torch.equal(fresh.gripper[0], belief.gripper[0])  # the restart changed something
+
+
+def test_qmdp_over_particles_equals_a_loop_over_the_known_ones(
+    fitted: tuple[PegInHoleBeliefModel, DynaQ, PegTransitions],
+) -> None:
+    model, agent, _ = fitted
+    lookup = QLookup(agent, model.task.states)
+    known = [model.task.states.index(s) for s in agent.states[:5]]
+    unknown = next(i for i in range(model.task.states.num_states) if i not in set(known))
+    ids = torch.tensor([[known[0], known[1], unknown, known[0]], [unknown] * 4])
+    weights = torch.tensor([[0.1, 0.2, 0.3, 0.4], [0.25] * 4], dtype=torch.float64)
+    expected = torch.zeros(2, 7, dtype=torch.float64)
+    for i, w in zip(ids[0].tolist(), weights[0].tolist(), strict=True):
+        if i != unknown:
+            expected[0] += w / 0.7 * agent.q_values(model.task.states.key(i))
+    torch.testing.assert_close(lookup.qmdp(ids, weights), expected, rtol=1e-12, atol=1e-15)

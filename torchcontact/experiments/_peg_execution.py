@@ -19,8 +19,8 @@ from torchcontact.envs import (
     PegInHoleConfig,
     PegInHoleStates,
 )
-from torchcontact.envs._belief import PegBelief, PegInHoleFilter, compose
-from torchcontact.rl import DynaQ, QNetwork, qmdp_values
+from torchcontact.envs._belief import PegBelief, PegInHoleFilter
+from torchcontact.rl import DynaQ, QNetwork
 
 #: The execution settings compared by :func:`evaluate`.
 Setting = Literal["oracle", "raw", "qmdp", "neural"]
@@ -66,6 +66,12 @@ class QLookup:
         out = torch.zeros(ids.shape[0], self.num_rows, dtype=weights.dtype)
         return out.scatter_add_(1, row.clamp(min=0), w)
 
+    def qmdp(self, ids: Tensor, weights: Tensor) -> Tensor:
+        """``(B, A)`` QMDP values ``Σ_i w_i Q(m_i, ·)`` over the particles in known states
+        (renormalized; zero if none is known): :meth:`probabilities` times the table, which is
+        also the QMDP head of a :class:`~torchcontact.rl.QNetwork` made ``from_table``."""
+        return self.probabilities(ids, weights) @ self.table
+
 
 def belief_features(filt: PegInHoleFilter, belief: PegBelief, lookup: QLookup) -> Tensor:
     """The input of the neural Q function: ``(B, M + F)``, probabilities first.
@@ -75,11 +81,11 @@ def belief_features(filt: PegInHoleFilter, belief: PegBelief, lookup: QLookup) -
     the log standard deviation of the pose (3), the entropy of the contact-class marginal,
     the effective sample size over ``N``, and the ``K = 24`` class marginals.
     """
-    ids, weights = filt.particle_states(belief)
-    probabilities = lookup.probabilities(ids, weights)
     states = filt.model.task.states
     rbpf = belief.rbpf
-    pose = compose(belief.gripper.unsqueeze(1), rbpf.gaussians.mean)  # (B, N, 3)
+    pose = filt.particle_poses(belief)  # (B, N, 3)
+    weights = rbpf.log_weights.exp()
+    probabilities = lookup.probabilities(states.ids(pose, rbpf.modes), weights)
     relative = states.relative_pose(pose)
     mean = (weights.unsqueeze(-1) * relative).sum(1)
     spread = (weights.unsqueeze(-1) * (relative - mean.unsqueeze(1)) ** 2).sum(1)
@@ -146,7 +152,7 @@ def evaluate(
     * ``"raw"``: greedy on the state of the raw observation: the camera's pose and the
       contact class that best explains the tactile readings
       (:meth:`~torchcontact.envs.PegInHoleBeliefModel.most_likely_classes` of ``filt``'s model);
-    * ``"qmdp"``: QMDP over the particles of ``filt`` (:func:`~torchcontact.rl.qmdp_values`);
+    * ``"qmdp"``: QMDP over the particles of ``filt`` (:meth:`QLookup.qmdp`);
     * ``"neural"``: ``network`` on :func:`belief_features` of ``filt``'s belief.
 
     Ties are broken at random (seeded by ``seed``).
@@ -194,12 +200,7 @@ def evaluate(
             assert belief is not None
             assert filt is not None
             if setting == "qmdp":
-                ids, weights = filt.particle_states(belief)
-                q, known = lookup.values(ids)
-                w = torch.where(known, weights, 0.0)
-                total = w.sum(-1, keepdim=True)
-                w = torch.where(total > 0, w / total.clamp(min=1e-300), 1.0 / filt.num_particles)
-                values = qmdp_values(q, w)
+                values = lookup.qmdp(*filt.particle_states(belief))
             else:
                 assert network is not None
                 with torch.no_grad():

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -13,7 +12,6 @@ from numpy.typing import NDArray
 from torchcontact.envs import PegInHole2DVector, PegInHoleStates
 from torchcontact.envs._belief import PegTransitions
 from torchcontact.rl import DynaQ
-from torchcontact.states import ManipulationState
 
 
 @dataclass(frozen=True)
@@ -66,9 +64,6 @@ class RoundResult:
     successes: NDArray[np.bool_]
     td_error: float
     transitions: PegTransitions
-
-
-Policy = Callable[[list[ManipulationState]], NDArray[np.int64]]
 
 
 def run_round(
