@@ -28,7 +28,7 @@ import torch
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from torchcontact.envs import PegInHole2DVector, PegInHoleConfig
+from torchcontact.envs import PegInHole2DVector, PegInHoleConfig, PegInHoleTask
 from torchcontact.envs._belief import PegInHoleBeliefModel, PegInHoleFilter, PegTransitions
 from torchcontact.experiments import (
     PotentialShaping,
@@ -149,22 +149,23 @@ def run(args: Args) -> dict[str, Any]:
             row["greedy_success"] = float(greedy.successes.mean())
             writer.add_scalar("eval/greedy_success", row["greedy_success"], episodes)
         history.append(row)
+        parts = [PegTransitions.concat(parts)]  # one piece: saved now, fitted on at the end
         torch.save(
             {
                 "args": dataclasses.asdict(args),
                 "agent": agent.state_dict(),
                 "round": r + 1,
-                "transitions": PegTransitions.concat(parts),
+                "transitions": parts[0],
                 "history": history,
             },
             checkpoint_path,
         )
     data = PegTransitions.concat(parts)
     noisy = _config(args, noisy=True)
-    env_noisy = PegInHole2DVector(num_envs=1, config=noisy)
-    model = PegInHoleBeliefModel.fit(data, agent.graph, task=env_noisy.task)
+    task = PegInHoleTask(noisy)
+    model = PegInHoleBeliefModel.fit(data, agent.graph, task=task)
     filt = PegInHoleFilter(model, num_particles=args.particles)
-    lookup = QLookup(agent, env_noisy.states)
+    lookup = QLookup(agent, task.states)
     evaluations = evaluate_settings(
         ("oracle", "raw", "qmdp"),
         num_episodes=args.final_episodes,

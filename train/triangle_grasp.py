@@ -25,7 +25,6 @@ Usage::
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import math
 import time
@@ -42,6 +41,7 @@ from torch import Tensor
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
+from torchcontact.experiments import parse_dataclass
 from torchcontact.filters import (
     RBPF,
     Gaussian,
@@ -100,28 +100,6 @@ class Args:
         default=0.15, metadata={"help": "max |initial rotation| of the triangle, radians"}
     )
     fast: bool = dataclasses.field(default=False, metadata={"help": "tiny budget (tests)"})
-
-
-def parse_args(argv: list[str] | None = None) -> Args:
-    """Command-line arguments, generated from :class:`Args`."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    for field in dataclasses.fields(Args):
-        default = field.default
-        if isinstance(default, bool):
-            parser.add_argument(
-                f"--{field.name.replace('_', '-')}",
-                action=argparse.BooleanOptionalAction,
-                default=default,
-                help=field.metadata["help"],
-            )
-        else:
-            parser.add_argument(
-                f"--{field.name.replace('_', '-')}",
-                type=type(default),
-                default=default,
-                help=f"{field.metadata['help']} (default: {default})",
-            )
-    return Args(**vars(parser.parse_args(argv)))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -618,7 +596,7 @@ def _plots(
 
 def main(argv: list[str] | None = None) -> None:
     """Parse the command line and run."""
-    result = run(parse_args(argv))
+    result = run(parse_dataclass(Args, argv, __doc__.splitlines()[0]))
     print(Path(result["run_dir"], "results.md").read_text())
 
 

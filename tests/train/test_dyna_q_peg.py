@@ -3,25 +3,13 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
-import sys
 from pathlib import Path
 from types import ModuleType
 
 import pytest
 import torch
 
-SCRIPT = Path(__file__).resolve().parents[2] / "train" / "dyna_q_peg.py"
-
-
-def _load() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("dyna_q_peg", SCRIPT)
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["dyna_q_peg"] = module
-    spec.loader.exec_module(module)
-    return module
+from tests.train import load_script
 
 
 def _tiny(module: ModuleType, out: Path, **changes: object) -> object:
@@ -40,7 +28,7 @@ def _tiny(module: ModuleType, out: Path, **changes: object) -> object:
 
 @pytest.fixture(scope="module")
 def module() -> ModuleType:
-    return _load()
+    return load_script("dyna_q_peg")
 
 
 def test_runs_and_writes_its_artefacts(module: ModuleType, tmp_path: Path) -> None:

@@ -2,24 +2,16 @@
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
 from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[2] / "train" / "triangle_grasp.py"
+from tests.train import load_script
 
 
 def _load():
-    spec = importlib.util.spec_from_file_location("triangle_grasp", SCRIPT)
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["triangle_grasp"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_script("triangle_grasp")
 
 
 @pytest.fixture(scope="module")
@@ -57,7 +49,7 @@ def test_ground_truth_stays_above_the_table(result: dict) -> None:
 def test_help_lists_the_arguments(capsys: pytest.CaptureFixture[str]) -> None:
     module = _load()
     with pytest.raises(SystemExit):
-        module.parse_args(["--help"])
+        module.main(["--help"])
     text = capsys.readouterr().out
     assert "--rbpf-particles" in text
     assert "--trials" in text
