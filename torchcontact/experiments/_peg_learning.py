@@ -18,13 +18,15 @@ from torchcontact.rl import DynaQ
 class PotentialShaping:
     r"""Potential-based reward shaping for the peg-in-hole task (Ng, Harada and Russell 1999).
 
-    The learner sees :math:`r' = r + Φ(s′) − Φ(s)` (:math:`Φ(s′) = 0` at termination) with
+    A learner with discount factor :math:`γ` sees :math:`r' = r + γ Φ(s′) − Φ(s)`
+    (:math:`Φ(s′) = 0` at termination) with
     :math:`Φ = −\mathrm{scale} \cdot (|b_x| + |b_y + d|)`, the distance (m, L1) from the peg's
     bottom centre :math:`b` to the goal at the insertion depth :math:`d` below the hole's
-    mouth. The task's objective is the undiscounted return, and a shaping term that
-    telescopes over an episode leaves its optimal policies unchanged, while telling the
-    learner, before it ever succeeds, which way the goal lies (the learner's own discount
-    factor is a learning device). ``scale = 0`` switches shaping off.
+    mouth. With the learner's own :math:`γ` in the term, the shaped discounted return of every
+    policy differs from the unshaped one by :math:`−Φ(s_0)` only, so the optimal policies are
+    unchanged, while the learner is told, before it ever succeeds, which way the goal lies.
+    (With :math:`Φ(s′) − Φ(s)` and :math:`γ < 1` the shaping would instead pay
+    :math:`(1 − γ)|Φ|` per step for staying far away.) ``scale = 0`` switches shaping off.
 
     Attributes:
         scale: ``>= 0``, in reward per metre (a 2 mm move changes ``Φ`` by ``0.002 scale``).
@@ -45,6 +47,18 @@ class PotentialShaping:
         relative = states.relative_pose(torch.as_tensor(peg_pose)).numpy()
         distance = np.abs(relative[:, 0]) + np.abs(relative[:, 1] + depth)
         return np.asarray(-self.scale * distance, dtype=np.float64)
+
+    def shaped(
+        self,
+        reward: NDArray[np.float64],
+        *,
+        potential: NDArray[np.float64],
+        next_potential: NDArray[np.float64],
+        terminated: NDArray[np.bool_],
+        gamma: float,
+    ) -> NDArray[np.float64]:
+        """``r + γ Φ(s′) − Φ(s)`` per entry ``(B,)``, with ``Φ(s′) = 0`` where ``terminated``."""
+        return np.asarray(reward + np.where(terminated, 0.0, gamma * next_potential) - potential)
 
 
 @dataclass(frozen=True)
@@ -81,7 +95,8 @@ def run_round(
     ``seed``: checkpoints between rounds resume exactly. The agent acts on the true
     manipulation state (``info["manipulation_state_id"]`` as a
     :class:`~torchcontact.states.ManipulationState` key): ε-greedy and learning (each
-    sub-environment's transitions in index order, shaped by ``shaping``) when ``learn``,
+    sub-environment's transitions in index order, shaped by ``shaping`` with the agent's
+    discount factor) when ``learn``,
     else greedy with random tie-breaking and no update.
 
     Args:
@@ -116,7 +131,13 @@ def run_round(
         _, reward, terminated, truncated, next_info = env.step(actions)
         next_states = [key(int(i)) for i in next_info["manipulation_state_id"]]
         next_potential = shaping.potential(env.states, next_info["peg_pose"], depth)
-        shaped = reward + np.where(terminated, 0.0, next_potential) - potential
+        shaped = shaping.shaped(
+            reward,
+            potential=potential,
+            next_potential=next_potential,
+            terminated=terminated,
+            gamma=agent.gamma,
+        )
         parts.append(
             PegTransitions.from_infos(info, actions, next_info, valid=live, first=first & live)
         )

@@ -1,0 +1,103 @@
+"""The neural-Q peg script trains from a tabular run on a tiny budget and resumes exactly."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+import pytest
+import torch
+
+from tests.train import load_script
+
+
+@pytest.fixture(scope="module")
+def module() -> ModuleType:
+    return load_script("neural_q_peg")
+
+
+@pytest.fixture(scope="module")
+def tabular_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A finished (tiny) Dyna-Q run to start from."""
+    tabular = load_script("dyna_q_peg")
+    out = tmp_path_factory.mktemp("tabular")
+    args = tabular.Args(
+        out_dir=str(out),
+        num_envs=4,
+        rounds=2,
+        max_steps=15,
+        eval_every=2,
+        eval_episodes=2,
+        final_episodes=2,
+        particles=24,
+    )
+    return Path(tabular.run(args)["run_dir"])
+
+
+def _tiny(module: ModuleType, out: Path, tabular: Path, **changes: object) -> object:
+    args = module.Args(
+        out_dir=str(out),
+        tabular_run=str(tabular),
+        num_envs=3,
+        rounds=2,
+        particles=24,
+        hidden=8,
+        buffer_size=64,
+        batch_size=8,
+        learning_starts=6,
+        target_every=3,
+        epsilon_steps=20,
+        eval_every=1,
+        eval_episodes=2,
+        final_episodes=3,
+    )
+    return dataclasses.replace(args, **changes)
+
+
+@pytest.fixture(scope="module")
+def straight(
+    module: ModuleType, tabular_run: Path, tmp_path_factory: pytest.TempPathFactory
+) -> dict[str, Any]:
+    """A tiny run without interruption."""
+    result: dict[str, Any] = module.run(
+        _tiny(module, tmp_path_factory.mktemp("straight"), tabular_run)
+    )
+    return result
+
+
+def test_trains_from_the_tabular_run_and_writes_its_artefacts(
+    straight: dict[str, Any],
+) -> None:
+    result = straight
+    run_dir = Path(result["run_dir"])
+    for name in ("results.md", "network.pt", "checkpoint.pt"):
+        assert (run_dir / name).is_file(), name
+    assert list(run_dir.glob("events.out.tfevents.*"))
+    assert set(result["evaluations"]) == {"oracle", "raw", "qmdp", "neural"}
+    history = result["history"]
+    assert len(history) == 2
+    assert "loss" in history[-1]  # updates happened
+    assert history[-1]["transitions"] > history[0]["transitions"] > 0
+    assert "| neural | 3 |" in (run_dir / "results.md").read_text()
+    state = torch.load(run_dir / "network.pt")
+    assert state["table"].shape[1] == 7
+
+
+def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
+    module: ModuleType, tabular_run: Path, straight: dict[str, Any], tmp_path: Path
+) -> None:
+    module.run(_tiny(module, tmp_path / "b", tabular_run, rounds=1))
+    resumed = module.run(_tiny(module, tmp_path / "b", tabular_run))
+    assert resumed["history"] == straight["history"]
+    a = torch.load(Path(straight["run_dir"]) / "network.pt")
+    b = torch.load(Path(resumed["run_dir"]) / "network.pt")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    with pytest.raises(ValueError, match="other arguments"):
+        module.run(_tiny(module, tmp_path / "b", tabular_run, learning_rate=1e-2))
+
+
+def test_a_missing_tabular_run_is_named(module: ModuleType, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=r"tabular_run .* run train/dyna_q_peg\.py first"):
+        module.run(_tiny(module, tmp_path, tmp_path / "nothing"))
