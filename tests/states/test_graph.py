@@ -99,6 +99,23 @@ def test_mean_rewards() -> None:
     assert float(rewards[0, 2, 2]) == -5.0
 
 
+def test_merging_states_adds_their_counts_and_rewards() -> None:
+    graph = _graph(smoothing=0.5)
+    # m1 and m2 become one state; m0 stays alone.
+    merged = graph.merged(lambda m: M1 if m in (M1, M2) else m)
+    assert merged.states == (M0, M1)
+    assert (merged.smoothing, merged.default_reward) == (0.5, -5.0)
+    assert merged.count(M0, 0, M1) == 4  # three to m1 + one to m2
+    assert merged.count(M1, 1, M1) == 1  # m1 → m2
+    assert merged.count(M0, 1, M0) == 2
+    assert merged.mean_reward(M0, 0, M1) == (1.0 + 2.0 + 4.0 + 0.1) / 4
+    # Merging by an injective key reproduces the graph.
+    same = graph.merged(lambda m: m)
+    assert same.to_json() == graph.to_json()
+    with pytest.raises(ValueError, match="ManipulationState"):
+        graph.merged(lambda m: m.pose)  # type: ignore[arg-type,return-value]
+
+
 def test_transition_exports() -> None:
     graph = _graph(smoothing=0.25)
     T = graph.transition_tensor()

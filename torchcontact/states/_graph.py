@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -392,6 +392,33 @@ class ManipulationGraph:
             graph.add_state(ManipulationState.from_json(state))
         for i, a, j, n, total in data["transitions"]:
             graph._edges.setdefault((i, a), {})[j] = [n, total]
+        return graph
+
+    def merged(self, key: Callable[[ManipulationState], ManipulationState]) -> ManipulationGraph:
+        """A coarser graph in which the states with the same ``key(state)`` become one.
+
+        Counts and reward sums add up: ``N′(M, a, M′) = Σ N(m, a, m′)`` over ``key(m) = M``,
+        ``key(m′) = M′``, so the merged model is the empirical model of the same data under
+        the coarser abstraction (for instance the contact state alone, to draw a graph of
+        thousands of manipulation states). Settings are kept; states appear in the order
+        their keys are first met.
+
+        Args:
+            key: maps each state to its merged state.
+
+        Raises:
+            ValueError: ``key`` returns something other than a :class:`ManipulationState`.
+        """
+        graph = ManipulationGraph(
+            self._num_actions, smoothing=self._smoothing, default_reward=self._default_reward
+        )
+        ids = [graph.add_state(key(state)) for state in self._table]
+        for (i, a), row in self._edges.items():
+            merged = graph._edges.setdefault((ids[i], a), {})
+            for j, (n, total) in row.items():
+                entry = merged.setdefault(ids[j], [0, 0.0])
+                entry[0] += n
+                entry[1] += total
         return graph
 
     def save(self, path: str | Path) -> None:
