@@ -9,7 +9,8 @@ the RBPF's belief model (contact-class-conditioned grasp motion, tactile model, 
 transition) on the recorded steps and executes the policy on noisy observations: oracle (true
 state), greedy on the raw observation, and QMDP over the RBPF belief. Writes TensorBoard logs,
 checkpoints (resumed exactly with ``--resume``), ``q_table.pt``, ``graph.json``,
-``belief_model.pt``, ``learning.png`` and ``results.md`` to ``runs/<name>``.
+``belief_model.pt``, ``learning.png``, ``graph.png`` (the graph merged to contact states) and
+``results.md`` to ``runs/<name>``.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from torchcontact.experiments import (
     run_round,
 )
 from torchcontact.rl import DynaQ
+from torchcontact.states import ManipulationGraph, ManipulationState
 
 
 @dataclasses.dataclass(frozen=True)
@@ -181,6 +183,7 @@ def run(args: Args) -> dict[str, Any]:
     agent.graph.save(run_dir / "graph.json")
     torch.save(model, run_dir / "belief_model.pt")
     _plot_learning(history, run_dir / "learning.png")
+    _plot_graph(agent.graph, run_dir / "graph.png")
     table = results_table(evaluations)
     text = (
         f"# Dyna-Q peg-in-hole ({episodes} training episodes, n = {args.planning_steps})\n\n"
@@ -212,6 +215,18 @@ def _plot_learning(history: list[dict[str, float]], path: Path) -> None:
     ax.set_ylabel("success rate")
     ax.set_ylim(-0.02, 1.02)
     ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _plot_graph(graph: ManipulationGraph, path: Path) -> None:
+    """The manipulation graph merged to contact states (the pose cells are too many to draw)."""
+    contact_graph = graph.merged(lambda state: ManipulationState((), state.contact))
+    fig, ax = plt.subplots(figsize=(7, 5.5))
+    labels = {i: str(state.contact) for i, state in enumerate(contact_graph.states)}
+    contact_graph.draw(ax, labels=labels)
+    ax.set_title(f"manipulation graph by contact state ({graph.num_states} states merged)")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -99,6 +99,55 @@ def test_planning_converges_to_the_graph_model_fixed_point(sampler: Sampler) -> 
     )
 
 
+def test_sweep_is_value_iteration_on_the_graph_model() -> None:
+    """One call of ``sweep`` lands on the fixed point that 600 dense Bellman backups over the
+    graph's tensors reach, from any starting table (here, the half-learned one)."""
+    world, gamma = GridWorld(slip=0.2), 0.9
+    agent = DynaQ(4, alpha=0.5, gamma=gamma, epsilon=0.3, planning_steps=0, seed=4)
+    _train(agent, world, np.random.default_rng(1), world.start, 300)
+    result = agent.sweep(tolerance=1e-12)
+    assert result.converged
+    assert result.residual <= 1e-12
+    assert 10 < result.sweeps < 600
+    np.testing.assert_allclose(
+        agent.q_table().numpy(), _model_fixed_point(agent, gamma), rtol=0, atol=1e-10
+    )
+    again = agent.sweep(tolerance=1e-12)
+    assert again.sweeps == 1  # already a fixed point
+
+
+def test_sweep_reports_non_convergence() -> None:
+    agent = DynaQ(1, gamma=1.0, seed=0)
+    agent.observe("a", 0, 1.0, "a", False)  # a reward loop: the values grow without bound
+    result = agent.sweep(max_sweeps=5)
+    assert not result.converged
+    assert result.sweeps == 5
+    assert result.residual == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="tolerance"):
+        agent.sweep(tolerance=0.0)
+    with pytest.raises(ValueError, match="max_sweeps"):
+        agent.sweep(max_sweeps=0)
+
+
+def test_least_tried_exploration_tries_every_action_before_repeating_one() -> None:
+    agent = DynaQ(5, epsilon=1.0, planning_steps=0, seed=3, exploration="least_tried")
+    agent.observe("s", 2, 0.0, "t", False)
+    agent.observe("s", 4, 0.0, "t", False)
+    picked = []
+    for _ in range(3):
+        action = agent.act("s")
+        assert action in (0, 1, 3)  # never one already tried while others are not
+        agent.observe("s", action, 0.0, "t", False)
+        picked.append(action)
+    assert sorted(picked) == [0, 1, 3]
+    np.testing.assert_array_equal(agent.action_counts("s"), [1, 1, 1, 1, 1])
+    np.testing.assert_array_equal(agent.action_counts("unknown"), [0] * 5)
+    # Once every count is equal, every action is a candidate again (uniform among them).
+    assert {agent.act("s") for _ in range(200)} == set(range(5))
+    clone = DynaQ.from_state_dict(agent.state_dict())
+    assert clone.exploration == "least_tried"
+
+
 @pytest.mark.parametrize("sampler", SAMPLERS)
 def test_planning_samples_the_empirical_distribution(sampler: Sampler) -> None:
     """With α = 1 and γ = 0 one planning update sets Q(s, a) to the sampled transition's
@@ -307,6 +356,7 @@ def test_other_states_get_stand_ins_in_the_graph() -> None:
         ({"planning_steps": 2.5}, "planning_steps"),
         ({"seed": -1}, "seed"),
         ({"sampler": "dense"}, "sampler"),
+        ({"exploration": "boltzmann"}, "exploration"),
     ],
 )
 def test_bad_settings_raise(kwargs: dict[str, Any], name: str) -> None:

@@ -34,7 +34,8 @@ def module() -> ModuleType:
 def test_runs_and_writes_its_artefacts(module: ModuleType, tmp_path: Path) -> None:
     result = module.run(_tiny(module, tmp_path))
     run_dir = Path(result["run_dir"])
-    for name in ("results.md", "q_table.pt", "graph.json", "learning.png", "checkpoint.pt"):
+    artefacts = ("results.md", "q_table.pt", "graph.json", "graph.png", "learning.png")
+    for name in (*artefacts, "checkpoint.pt"):
         assert (run_dir / name).is_file(), name
     assert set(result["evaluations"]) == {"oracle", "raw", "qmdp"}
     assert len(result["history"]) == 2

@@ -10,7 +10,7 @@
 """
 
 from torchcontact.rl._dqn import dqn_loss, update_target
-from torchcontact.rl._dyna_q import DynaQ, Sampler
+from torchcontact.rl._dyna_q import DynaQ, Exploration, Sampler, SweepResult
 from torchcontact.rl._q_network import QNetwork
 from torchcontact.rl._qmdp import qmdp_action, qmdp_values
 from torchcontact.rl._replay import ReplayBuffer, Transitions
@@ -19,9 +19,11 @@ from torchcontact.rl._schedule import EpsilonSchedule
 __all__ = [
     "DynaQ",
     "EpsilonSchedule",
+    "Exploration",
     "QNetwork",
     "ReplayBuffer",
     "Sampler",
+    "SweepResult",
     "Transitions",
     "dqn_loss",
     "qmdp_action",

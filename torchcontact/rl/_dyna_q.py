@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import json
 from collections.abc import Hashable, Mapping
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
@@ -17,6 +18,22 @@ from torchcontact.states import ContactState, ManipulationGraph, ManipulationSta
 _FORMAT = "torchcontact.DynaQ"
 
 Sampler = Literal["index", "graph"]
+Exploration = Literal["uniform", "least_tried"]
+
+
+@dataclass(frozen=True)
+class SweepResult:
+    """Outcome of :meth:`DynaQ.sweep`.
+
+    Attributes:
+        sweeps: full sweeps done.
+        residual: the largest change of a Q value in the last sweep.
+        converged: ``residual <= tolerance``.
+    """
+
+    sweeps: int
+    residual: float
+    converged: bool
 
 
 def _placeholder(index: int) -> ManipulationState:
@@ -58,6 +75,17 @@ class DynaQ:
     dense ``(A, K, K)`` model after every observation (``O(A K²)`` per step). Both sample the
     same distribution but consume randomness differently.
 
+    **Exploration.** With probability ε, :meth:`act` explores: ``"uniform"`` picks any action;
+    ``"least_tried"`` picks uniformly among the actions tried least often in the state
+    (``argmin_a N(s, a)``), so every action of a frequently visited state gets tried before any
+    is tried twice by exploration — a directed, count-based exploration that leaves fewer
+    untried actions (stuck at ``initial_value``) on the greedy policy's path.
+
+    **Sweeps.** :meth:`sweep` runs value iteration on the learned model (expected updates of
+    every observed pair until the values stop changing, Sutton and Barto Section 8.5): the
+    sample updates of planning then leave no inconsistency between neighbouring states'
+    values for a greedy policy to exploit.
+
     **Randomness.** Exploration, tie-breaking and planning use the agent's own generators,
     seeded by ``seed``: two agents with the same seed and the same inputs behave identically,
     and :meth:`state_dict` / :meth:`load_state_dict` resume a run exactly.
@@ -71,6 +99,7 @@ class DynaQ:
         seed: seed of the agent's random generators, an int ``>= 0``.
         sampler: ``"index"`` or ``"graph"``, see above.
         initial_value: the Q value of every state-action pair before its first update.
+        exploration: ``"uniform"`` or ``"least_tried"``, see above.
 
     Raises:
         ValueError: an argument is out of range (the message names it).
@@ -92,6 +121,7 @@ class DynaQ:
         *,
         sampler: Sampler = "index",
         initial_value: float = 0.0,
+        exploration: Exploration = "uniform",
     ) -> None:
         self._num_actions = check_int("num_actions", num_actions, low=1)
         self._initial_value = check_real("initial_value", initial_value)
@@ -103,6 +133,7 @@ class DynaQ:
         if sampler not in ("index", "graph"):
             raise ValueError(f"sampler must be 'index' or 'graph', got {sampler!r}")
         self._sampler: Sampler = sampler
+        self._exploration = _check_exploration("exploration", exploration)
         self._rng = np.random.default_rng(self._seed)
         self._torch_rng = torch.Generator().manual_seed(self._seed)
         self._reset_tables()
@@ -173,6 +204,11 @@ class DynaQ:
         return self._sampler
 
     @property
+    def exploration(self) -> Exploration:
+        """How :meth:`act` explores: ``"uniform"`` or ``"least_tried"``."""
+        return self._exploration
+
+    @property
     def seed(self) -> int:
         """The seed the agent was created with."""
         return self._seed
@@ -236,12 +272,16 @@ class DynaQ:
     # ------------------------------------------------------------------------------- acting
 
     def act(self, state: Hashable) -> int:
-        """ε-greedy action: uniform with probability ε, else a maximizing action, ties broken
-        uniformly at random (uses the agent's generator).
+        """ε-greedy action: with probability ε an exploratory one (see :attr:`exploration`),
+        else a maximizing action; ties broken uniformly at random (the agent's generator).
         """
         row = self._row(state)
         if self._rng.random() < self._epsilon:
-            return int(self._rng.integers(self._num_actions))
+            if self._exploration == "uniform":
+                return int(self._rng.integers(self._num_actions))
+            tried = self.action_counts(state)
+            least = np.flatnonzero(tried == tried.min())
+            return int(least[self._rng.integers(least.size)])
         best = np.flatnonzero(row == row.max())
         if best.size == 1:
             return int(best[0])
@@ -250,6 +290,18 @@ class DynaQ:
     def greedy(self, state: Hashable) -> int:
         """A maximizing action, the lowest one among ties (deterministic; no randomness used)."""
         return int(np.argmax(self._row(state)))
+
+    def action_counts(self, state: Hashable) -> np.ndarray:
+        """``(A,)`` int64 counts ``N(s, a)`` of the real transitions observed from ``state``."""
+        index = self._table.get(self._check_hashable("state", state))
+        counts = np.zeros(self._num_actions, dtype=np.int64)
+        if index < 0:
+            return counts
+        for a in range(self._num_actions):
+            pair = self._pair_ids.get((index, a))
+            if pair is not None:
+                counts[a] = self._pair_totals[pair]
+        return counts
 
     def _row(self, state: Hashable) -> np.ndarray:
         index = self._table.get(self._check_hashable("state", state))
@@ -411,6 +463,51 @@ class DynaQ:
             q[s, a] += alpha * (target - q[s, a])
         self._planning_updates += n
 
+    def sweep(self, *, tolerance: float = 1e-8, max_sweeps: int = 10_000) -> SweepResult:
+        """Value iteration on the learned model, in place.
+
+        Every observed pair gets the expected update
+        ``Q(s, a) ← Σ_s′ P(s′ | s, a) (R(s, a, s′) + γ max_b Q(s′, b))`` (no bootstrap from
+        terminal states), all pairs at once per sweep, until no value changes by more than
+        ``tolerance``. Pairs never observed keep their values. For ``γ < 1`` this converges
+        to the optimal Q function of the empirical model (a γ-contraction).
+
+        Args:
+            tolerance: ``> 0``, the convergence threshold on the largest change.
+            max_sweeps: ``>= 1``, the most sweeps.
+
+        Returns:
+            The number of sweeps, the last residual and whether it converged (with ``γ = 1``
+            and a model with cycles it may not: check ``converged``).
+
+        Raises:
+            ValueError: an argument is out of range.
+        """
+        tolerance = check_real("tolerance", tolerance, low=0.0, low_open=True)
+        max_sweeps = check_int("max_sweeps", max_sweeps, low=1)
+        num_pairs = len(self._edges)
+        if num_pairs == 0:
+            return SweepResult(0, 0.0, True)
+        rows = [
+            (pair, s2, count, total)
+            for pair, edges in enumerate(self._edges)
+            for s2, count, total in edges
+        ]
+        pair, target, count, total = (np.array(column) for column in zip(*rows, strict=True))
+        probability = count / self._pair_totals[pair]
+        reward = probability * total / count  # P(s′|s,a) R(s,a,s′)
+        source, action = self._pairs[:num_pairs, 0], self._pairs[:num_pairs, 1]
+        q, live = self._q, ~self._terminal[target]
+        residual = float("inf")
+        for done in range(1, max_sweeps + 1):
+            backup = reward + probability * self._gamma * np.where(live, q[target].max(1), 0.0)
+            values = np.bincount(pair, weights=backup, minlength=num_pairs)
+            residual = float(np.abs(values - q[source, action]).max())
+            q[source, action] = values
+            if residual <= tolerance:
+                return SweepResult(done, residual, True)
+        return SweepResult(max_sweeps, residual, False)
+
     # -------------------------------------------------------------------------- checkpoints
 
     def state_dict(self) -> dict[str, Any]:
@@ -441,6 +538,7 @@ class DynaQ:
             "seed": self._seed,
             "sampler": self._sampler,
             "initial_value": self._initial_value,
+            "exploration": self._exploration,
             "states": list(self._table.states),
             "q_table": torch.from_numpy(self._q[:K].copy()),
             "terminal": torch.from_numpy(self._terminal[:K].copy()),
@@ -499,6 +597,9 @@ class DynaQ:
         graph = ManipulationGraph.from_json(state_dict["graph"])
         initial_value = state_dict.get("initial_value", 0.0)  # absent before it existed
         self._initial_value = check_real("state_dict initial_value", initial_value)
+        self._exploration = _check_exploration(
+            "state_dict exploration", state_dict.get("exploration", "uniform")
+        )
         self._reset_tables()
         for index, state in enumerate(states):
             if self._register("state_dict states", state) != index:
@@ -558,9 +659,18 @@ class DynaQ:
         return (
             f"DynaQ(num_actions={self._num_actions}, alpha={self._alpha}, gamma={self._gamma}, "
             f"epsilon={self._epsilon}, planning_steps={self._planning_steps}, "
-            f"seed={self._seed}, sampler={self._sampler!r}, states={self.num_states}, "
+            f"seed={self._seed}, sampler={self._sampler!r}, "
+            f"exploration={self._exploration!r}, states={self.num_states}, "
             f"steps={self._steps})"
         )
+
+
+def _check_exploration(name: str, value: object) -> Exploration:
+    if value == "uniform":
+        return "uniform"
+    if value == "least_tried":
+        return "least_tried"
+    raise ValueError(f"{name} must be 'uniform' or 'least_tried', got {value!r}")
 
 
 def _grow(array: np.ndarray, size: int) -> np.ndarray:
