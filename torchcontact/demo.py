@@ -26,8 +26,13 @@ import matplotlib.pyplot as plt
 import torch
 
 from torchcontact.contact import solve, solve_mode
-from torchcontact.envs import PegInHole2DVector, PegInHoleConfig
-from torchcontact.envs._belief import PegInHoleBeliefModel, PegInHoleFilter, PegTransitions
+from torchcontact.envs import (
+    PegInHole2DVector,
+    PegInHoleBeliefModel,
+    PegInHoleConfig,
+    PegInHoleFilter,
+    PegTransitions,
+)
 from torchcontact.experiments import (
     PotentialShaping,
     QLookup,

@@ -29,8 +29,14 @@ import torch
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from torchcontact.envs import PegInHole2DVector, PegInHoleConfig, PegInHoleTask
-from torchcontact.envs._belief import PegInHoleBeliefModel, PegInHoleFilter, PegTransitions
+from torchcontact.envs import (
+    PegInHole2DVector,
+    PegInHoleBeliefModel,
+    PegInHoleConfig,
+    PegInHoleFilter,
+    PegInHoleTask,
+    PegTransitions,
+)
 from torchcontact.experiments import (
     PotentialShaping,
     QLookup,

@@ -28,8 +28,7 @@ import torch
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from torchcontact.envs import PegInHole2DVector
-from torchcontact.envs._belief import PegInHoleBeliefModel, PegInHoleFilter
+from torchcontact.envs import PegInHole2DVector, PegInHoleBeliefModel, PegInHoleFilter
 from torchcontact.experiments import (
     NUM_BELIEF_FEATURES,
     PotentialShaping,

@@ -4,7 +4,9 @@
 friction between two servoed fingers, so the peg can slip and turn in the grasp when the hole
 pushes on it. :class:`PegInHole2DVector` steps a batch of them as one tensor batch. Their
 manipulation states (:class:`PegInHoleStates`) are integer ids computed in one vectorized pass
-from poses (true or estimated) and contact classes.
+from poses (true or estimated) and contact classes. :class:`PegInHoleFilter` tracks the peg in
+the grasp with the RBPF over contact classes, on a :class:`PegInHoleBeliefModel` fitted from
+recorded steps (:class:`PegTransitions`) and the manipulation graph.
 
 Importing this package registers ``"torchcontact/PegInHole2D-v0"`` with gymnasium (also for
 ``gymnasium.make_vec(..., vectorization_mode="vector_entry_point")``).
@@ -14,6 +16,13 @@ from __future__ import annotations
 
 import gymnasium
 
+from torchcontact.envs._belief import (
+    PegBelief,
+    PegControl,
+    PegInHoleBeliefModel,
+    PegInHoleFilter,
+    PegTransitions,
+)
 from torchcontact.envs._config import PegInHoleConfig
 from torchcontact.envs._engine import CompactSimulator
 from torchcontact.envs._env import PegInHole2D
@@ -66,11 +75,16 @@ __all__ = [
     "PEG_IN_HOLE_ID",
     "START_KEYS",
     "CompactSimulator",
+    "PegBelief",
+    "PegControl",
     "PegInHole2D",
     "PegInHole2DVector",
+    "PegInHoleBeliefModel",
     "PegInHoleConfig",
+    "PegInHoleFilter",
     "PegInHoleStates",
     "PegInHoleTask",
+    "PegTransitions",
     "Physics",
     "build_scene",
     "contact_classes",
