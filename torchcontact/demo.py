@@ -167,12 +167,20 @@ def _peg_in_hole(args: DemoArgs) -> list[str]:
     start = time.perf_counter()
     config = PegInHoleConfig(pose_noise_std=(0.002, 0.002, 0.02))
     env = PegInHole2DVector(num_envs=args.peg_envs, config=config)
-    agent = DynaQ(7, alpha=0.3, gamma=0.95, epsilon=0.1, planning_steps=10, seed=args.seed)
+    agent = DynaQ(
+        7,
+        alpha=0.3,
+        gamma=0.99,
+        epsilon=0.1,
+        planning_steps=10,
+        seed=args.seed,
+        exploration="least_tried",
+    )
     shaping = PotentialShaping(5.0)
-    rounds = [
-        run_round(env, agent, seed=args.seed * 1_000_003 + r, shaping=shaping)
-        for r in range(args.peg_rounds)
-    ]
+    rounds = []
+    for r in range(args.peg_rounds):
+        rounds.append(run_round(env, agent, seed=args.seed * 1_000_003 + r, shaping=shaping))
+        agent.sweep()
     model = PegInHoleBeliefModel.fit(
         PegTransitions.concat([r.transitions for r in rounds]), agent.graph, task=env.task
     )
@@ -189,7 +197,8 @@ def _peg_in_hole(args: DemoArgs) -> list[str]:
         f"## Peg-in-hole: learn, then execute under uncertainty "
         f"({time.perf_counter() - start:.0f} s)",
         "",
-        f"Dyna-Q (n = 10, shaped reward): {args.peg_rounds * args.peg_envs} training episodes, "
+        f"Dyna-Q (n = 10, value iteration between rounds, shaped reward): "
+        f"{args.peg_rounds * args.peg_envs} training episodes, "
         f"ε-greedy success per round {', '.join(f'{100 * x:.0f} %' for x in training)}; "
         f"{agent.num_states} manipulation states, "
         f"{int(agent.graph.count_entries()[1].sum())} graph transitions. Execution on camera "

@@ -4,7 +4,8 @@
 
 Learns a tabular Q function over manipulation states (pose cell × contact class) and the
 manipulation graph with Dyna-Q on rounds of batched episodes (one episode per environment per
-round, true state, shaped reward), evaluating the greedy policy every few rounds. Then fits
+round, true state, shaped reward, count-directed ε exploration), with value iteration on the
+graph after each round when planning, evaluating the greedy policy every few rounds. Then fits
 the RBPF's belief model (contact-class-conditioned grasp motion, tactile model, the graph as
 transition) on the recorded steps and executes the policy on noisy observations: oracle (true
 state), greedy on the raw observation, and QMDP over the RBPF belief. Writes TensorBoard logs,
@@ -18,7 +19,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, cast, get_args
 
 import matplotlib
 
@@ -45,7 +46,7 @@ from torchcontact.experiments import (
     results_table,
     run_round,
 )
-from torchcontact.rl import DynaQ
+from torchcontact.rl import DynaQ, Exploration
 from torchcontact.states import ManipulationGraph, ManipulationState
 
 
@@ -61,8 +62,15 @@ class Args:
     max_steps: int = dataclasses.field(default=200, metadata={"help": "steps per episode"})
     planning_steps: int = dataclasses.field(default=10, metadata={"help": "Dyna-Q planning n"})
     alpha: float = dataclasses.field(default=0.3, metadata={"help": "Q-learning step size"})
-    gamma: float = dataclasses.field(default=0.95, metadata={"help": "discount factor"})
+    gamma: float = dataclasses.field(default=0.99, metadata={"help": "discount factor"})
     epsilon: float = dataclasses.field(default=0.1, metadata={"help": "exploration rate"})
+    exploration: str = dataclasses.field(
+        default="least_tried", metadata={"help": "ε exploration: uniform or least_tried"}
+    )
+    sweep: bool = dataclasses.field(
+        default=True,
+        metadata={"help": "value iteration on the graph after each round (if planning_steps > 0)"},
+    )
     shaping: float = dataclasses.field(
         default=5.0, metadata={"help": "potential-based shaping scale, reward per metre"}
     )
@@ -88,6 +96,12 @@ def _config(args: Args, noisy: bool) -> PegInHoleConfig:
     return PegInHoleConfig(max_steps=args.max_steps, pose_noise_std=noise)
 
 
+def _exploration(value: str) -> Exploration:
+    if value not in get_args(Exploration):
+        raise ValueError(f"exploration must be one of {get_args(Exploration)}, got {value!r}")
+    return cast(Exploration, value)
+
+
 def _checkpoint(path: Path) -> dict[str, Any] | None:
     if not path.exists():
         return None
@@ -108,6 +122,7 @@ def run(args: Args) -> dict[str, Any]:
         epsilon=args.epsilon,
         planning_steps=args.planning_steps,
         seed=args.seed,
+        exploration=_exploration(args.exploration),
     )
     shaping = PotentialShaping(args.shaping)
     start, parts, history = 0, [], []
@@ -126,6 +141,10 @@ def run(args: Args) -> dict[str, Any]:
     ):
         updates_before, clock = agent.planning_updates, time.perf_counter()
         result = run_round(env, agent, seed=args.seed * 1_000_003 + r, shaping=shaping)
+        if args.sweep and args.planning_steps > 0:
+            sweep = agent.sweep()
+            if not sweep.converged:
+                raise RuntimeError(f"value iteration did not converge: {sweep}")
         seconds = time.perf_counter() - clock
         parts.append(result.transitions)
         episodes += args.num_envs
