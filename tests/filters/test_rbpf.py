@@ -358,6 +358,43 @@ def test_log_evidence_gradient_matches_finite_differences(proposal: str) -> None
         assert abs(grad.item() - fd) < 1e-5 * max(1.0, abs(fd)), (i, grad.item(), fd)
 
 
+@pytest.mark.parametrize("proposal", ["bootstrap", "all_modes"])
+def test_noise_and_measurement_shared_by_every_mode_give_the_same_step(proposal: str) -> None:
+    # Q, H, d, R given as views of one matrix are used without a copy per particle; the
+    # numbers must be those of the same matrices stored once per mode.
+    problem = _problem(extra=True)
+    shared = {
+        name: torch.tensor(problem.arrays[name][0], dtype=F64).expand(
+            K, *problem.arrays[name][0].shape
+        )
+        for name in ("Q", "H", "d", "R")
+    }
+    views = RBPF(problem.model(**shared), 32, proposal=proposal)
+    copies = RBPF(problem.model(**{k: v.clone() for k, v in shared.items()}), 32, proposal=proposal)
+    a, b = _run(views, problem, seed=3), _run(copies, problem, seed=3)
+    for x, y in zip(
+        (a.modes, a.log_weights, a.log_evidence, a.gaussians.mean, a.gaussians.cov),
+        (b.modes, b.log_weights, b.log_evidence, b.gaussians.mean, b.gaussians.cov),
+        strict=True,
+    ):
+        assert torch.equal(x, y)
+
+
+def test_steps_without_gradients_return_ordinary_tensors() -> None:
+    # Without a gradient to carry, the step runs in inference mode; what it returns must still
+    # be ordinary tensors (in-place updates and autograd work on them), laid out as before.
+    problem = _problem()
+    belief = _run(RBPF(problem.model(), 16), problem)
+    g = belief.gaussians
+    tensors = (belief.modes, belief.log_weights, belief.log_evidence, g.mean, g.cov)
+    assert not any(t.is_inference() for t in (*tensors, belief.history, belief.degenerate))
+    assert g.cov.movedim(0, -1).is_contiguous()  # batch-last storage, as before
+    g.mean.add_(0.0)
+    scale = torch.ones((), dtype=F64, requires_grad=True)
+    (g.cov * scale).sum().backward()  # saves the covariance for the backward pass
+    assert scale.grad is not None
+
+
 def test_generator_makes_runs_reproducible() -> None:
     problem = _problem(seed=8)
     rbpf = RBPF(problem.model(), 20)

@@ -41,11 +41,10 @@ def check_tensor(
     if x.ndim < len(event) or tuple(x.shape[x.ndim - len(event) :]) != event:
         shape = ", ".join(["*B", *map(str, event)])
         raise ValueError(f"{name}: expected shape ({shape}), got {tuple(x.shape)}")
-    bad = torch.isposinf(x)
-    if not allow_neginf:
-        bad = bad | torch.isneginf(x)
-    if not allow_nan:
-        bad = bad | torch.isnan(x)
+    if allow_nan:
+        bad = torch.isposinf(x) if allow_neginf else torch.isinf(x)
+    else:
+        bad = torch.isposinf(x) | torch.isnan(x) if allow_neginf else ~torch.isfinite(x)
     if bool(bad.any()):
         allowed = " or ".join(["NaN"] * (not allow_nan) + ["-inf"] * (not allow_neginf) + ["+inf"])
         raise ValueError(f"{name}: contains {allowed}")

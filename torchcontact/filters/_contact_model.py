@@ -41,6 +41,27 @@ class KinematicControl:
     v: Tensor
 
 
+@dataclass(frozen=True, eq=False)
+class _ConstantDynamics:
+    """The per-step constants of :meth:`PlanarContactModel.mode_dynamics`.
+
+    Attributes:
+        Q: ``(K, 6, 6)`` process noise.
+        H: ``(K, 3, 6)`` vision's measurement matrix.
+        d: ``(K, 3)`` zero measurement offset.
+        R: ``(K, 3, 3)`` vision noise.
+        consistent: ``()`` log-weight 0 of a consistent mode.
+        inconsistent: ``()`` log-weight ``-inconsistency_penalty`` of an inconsistent one.
+    """
+
+    Q: Tensor
+    H: Tensor
+    d: Tensor
+    R: Tensor
+    consistent: Tensor
+    inconsistent: Tensor
+
+
 @dataclass(frozen=True, eq=False, kw_only=True)
 class PlanarContactModel:
     r"""One body of a planar scene, its contact modes and a vision sensor, as a switching model
@@ -64,20 +85,21 @@ class PlanarContactModel:
     plus the process noise :math:`Q_k`. Vision measures the pose: :math:`y = (x, y, \theta)
     + N(0, R)` (the angle must be continuous, not wrapped, like the simulator's).
 
-    The Jacobian is a central difference in float64 (``2·6`` extra evaluations of the step;
-    the default step of 3e-5 balances the curvature of the geometry against the solver's
-    round-off): on a box pushed by a finger it matches reverse-mode automatic differentiation
-    to 1e-5 (entries up to ``1/h = 100``). All points and modes are evaluated in one batch,
-    with each mode's constraint system reduced to the slots it activates (a few tensor
-    operations on small tensors: about 2 ms for 5 modes on one CPU thread, 30 ms for a batch
-    of 50 means and 12 modes). At a kink of the geometry (a slot's nearest feature switching
-    inside the stencil) the two one-sided differences disagree; there the smaller one is
-    used. A mode whose active slots are not candidates at :math:`\bar x` (out of the scene's
-    margin) acts as if those slots were separated (the candidates are those at :math:`\bar
-    x` for the whole stencil). Where a mode's equalities contradict each other at
-    :math:`\bar x` (a finger sticking to a box that slides on the ground), its step is
-    ``solve_mode``'s regularised answer, which amplifies round-off: its linearization is
-    reproducible to about 1e-3 only (such modes are usually inconsistent, see below).
+    The Jacobian is a central difference in float64 (``2·6`` extra evaluations of the step; the
+    default step of 3e-5 balances the curvature of the geometry against the solver's round-off):
+    on a box pushed by a finger it matches reverse-mode automatic differentiation to 1e-5
+    (entries up to ``1/h = 100``). All points and modes are evaluated in one batch, with each
+    mode's constraint system reduced to the slots it activates (about 215 small tensor
+    operations, whatever the batch: 1.5 ms for 5 modes on one CPU thread, 20 ms for a batch of
+    50 means, where the batched LU solves of 3,500 small systems dominate). At a kink of the
+    geometry (a slot's nearest feature switching inside the stencil) the two one-sided
+    differences disagree; there the smaller one is used. A mode whose active slots are not
+    candidates at :math:`\bar x` (out of the scene's margin) acts as if those slots were
+    separated (the candidates are those at :math:`\bar x` for the whole stencil). Where a mode's
+    equalities contradict each other at :math:`\bar x` (a finger sticking to a box that slides
+    on the ground), its step is ``solve_mode``'s regularised answer, which amplifies round-off:
+    its linearization is reproducible to about 1e-3 only (such modes are usually inconsistent,
+    see below).
 
     Physics as evidence: a mode's step at :math:`\bar x` may contradict the mode itself (a
     finger that stopped would have to pull the box it was pushing, friction of a sliding
@@ -232,20 +254,20 @@ class PlanarContactModel:
             The :class:`ModeDynamics` with ``F (*B, K, 6, 6)``, ``c (*B, K, 6)`` and the
             constant noise and vision model.
         """
-        F, c, consistent = self._linearize(belief.mean(), control)
-        K, dtype = self.num_modes, self.dtype
+        # A belief's mean is finite (the filter checks what it is built from): no check here.
+        F, c, consistent = self._linearize(belief.mean(), control, self.dtype)
+        noise = self._noise
         log_weight = None
         if self.inconsistency_penalty > 0:
-            penalty = torch.tensor(-self.inconsistency_penalty, dtype=dtype, device=self.device)
-            log_weight = torch.where(consistent, torch.zeros_like(penalty), penalty)
+            log_weight = torch.where(consistent, noise.consistent, noise.inconsistent)
         return ModeDynamics(
             mode_log_weight=log_weight,
-            F=F.to(dtype),
-            c=c.to(dtype),
-            Q=self.Q.expand(K, STATE_DIM, STATE_DIM),
-            H=self._H(),
-            d=self.Q.new_zeros(K, OBS_DIM),
-            R=self.R.expand(K, OBS_DIM, OBS_DIM),
+            F=F,
+            c=c,
+            Q=noise.Q,
+            H=noise.H,
+            d=noise.d,
+            R=noise.R,
         )
 
     # ------------------------------------------------------------------------------------------
@@ -284,34 +306,41 @@ class PlanarContactModel:
         Returns:
             ``F (*B, K, 6, 6)`` and ``c (*B, K, 6)``, float64.
         """
-        F, c, _ = self._linearize(x, control)
+        _check_state(x)
+        F, c, _ = self._linearize(x, control, torch.float64)
         return F, c
 
     def _linearize(
-        self, x: Tensor, control: KinematicControl | None
+        self, x: Tensor, control: KinematicControl | None, dtype: torch.dtype
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """``F``, ``c`` and ``(*B, K)`` bool: the mode is consistent at ``x``."""
-        _check_state(x)
+        """``F`` and ``c`` in ``dtype``, and ``(*B, K)`` bool: the mode is consistent at ``x``
+        (finite)."""
         batch = x.shape[:-1]
-        x = x.to(torch.float64)
         q_kin, v_kin = self._control(control, batch, torch.float64)
-        flat = x.reshape(-1, STATE_DIM)
+        flat = x.reshape(-1, STATE_DIM).to(torch.float64)
         kinematic = (flat.shape[0], q_kin.shape[-2], 3)
-        F, c, consistent = linearize_modes(
-            self._layout,
-            self._mode_table,
-            flat,
-            q_kin.reshape(kinematic),
-            v_kin.reshape(kinematic),
-            fd_step=self.fd_step,
-            consistency_gap=self.consistency_gap,
-            consistency_tolerance=self.consistency_tolerance,
+        # Without gradients to carry, inference mode spares every small operation autograd's
+        # bookkeeping; F and c leave it as ordinary tensors (copies of a few numbers).
+        tracked = torch.is_grad_enabled() and (
+            flat.requires_grad or q_kin.requires_grad or v_kin.requires_grad
         )
+        layout, table = self._layout, self._mode_table  # built (once) outside inference mode
+        with torch.inference_mode(not tracked):
+            F, c, consistent = linearize_modes(
+                layout,
+                table,
+                flat,
+                q_kin.reshape(kinematic),
+                v_kin.reshape(kinematic),
+                fd_step=self.fd_step,
+                consistency_gap=self.consistency_gap,
+                consistency_tolerance=self.consistency_tolerance,
+            )
         K = self.num_modes
         return (
-            F.reshape(*batch, K, STATE_DIM, STATE_DIM),
-            c.reshape(*batch, K, STATE_DIM),
-            consistent.reshape(*batch, K),
+            F.to(dtype, copy=True).view(*batch, K, STATE_DIM, STATE_DIM),
+            c.to(dtype, copy=True).view(*batch, K, STATE_DIM),
+            consistent.view(*batch, K),
         )
 
     def _step(self, x: Tensor, modes: Tensor, q_kin: Tensor, v_kin: Tensor) -> Tensor:
@@ -397,9 +426,23 @@ class PlanarContactModel:
     # ------------------------------------------------------------------------------------------
 
     def _H(self) -> Tensor:
-        H = self.Q.new_zeros(self.num_modes, OBS_DIM, STATE_DIM)
-        H[:, :, :OBS_DIM] = torch.eye(OBS_DIM, dtype=self.Q.dtype)
-        return H
+        """``(K, 3, 6)``: vision measures the pose, in every mode (one matrix, expanded)."""
+        H = self.Q.new_zeros(OBS_DIM, STATE_DIM)
+        H[:, :OBS_DIM] = torch.eye(OBS_DIM, dtype=self.Q.dtype)
+        return H.expand(self.num_modes, OBS_DIM, STATE_DIM)
+
+    @cached_property
+    def _noise(self) -> _ConstantDynamics:
+        """The parts of :meth:`mode_dynamics` that do not change, built at its first use."""
+        K, penalty = self.num_modes, -self.inconsistency_penalty
+        return _ConstantDynamics(
+            Q=self.Q.expand(K, STATE_DIM, STATE_DIM),
+            H=self._H(),
+            d=self.Q.new_zeros(OBS_DIM).expand(K, OBS_DIM),
+            R=self.R.expand(K, OBS_DIM, OBS_DIM),
+            consistent=self.Q.new_zeros(()),
+            inconsistent=torch.tensor(penalty, dtype=self.dtype, device=self.device),
+        )
 
     @cached_property
     def _layout(self) -> SlotLayout:
@@ -423,12 +466,15 @@ class PlanarContactModel:
             return empty, empty
         if not isinstance(control, KinematicControl):
             raise ValueError(f"control: expected a KinematicControl, got {type(control).__name__}")
-        out = []
-        for name, value in (("control.q", control.q), ("control.v", control.v)):
+        values = {"control.q": control.q, "control.v": control.v}
+        for name, value in values.items():
             if not isinstance(value, Tensor) or value.shape[-2:] != (Nk, 3):
                 raise ValueError(f"{name}: expected a (*B, {Nk}, 3) tensor, got {describe(value)}")
-            if not bool(torch.isfinite(value).all()):
-                raise ValueError(f"{name}: contains NaN or inf")
+        if not bool(torch.isfinite(control.q).all() & torch.isfinite(control.v).all()):
+            name = next(name for name, value in values.items() if not value.isfinite().all())
+            raise ValueError(f"{name}: contains NaN or inf")
+        out = []
+        for name, value in values.items():
             try:
                 out.append(value.to(dtype).expand(*batch, Nk, 3))
             except RuntimeError as err:

@@ -4,21 +4,29 @@ It computes what the model's definition asks for: central differences of the mod
 (:func:`~torchcontact.sim.contact_problem`, :func:`~torchcontact.contact.solve_mode`,
 semi-implicit Euler), and :func:`~torchcontact.contact.is_consistent` at the centre with the
 mode's gaps closed. The tensors are small (a few modes, a dozen slots), so the time goes into
-the number of tensor operations, not their size; this module uses few:
+the number of tensor operations (a few microseconds each), not their size; this module uses
+about 215 per call (and 115 views), whatever the batch, 17 of them LAPACK calls:
 
-* the slot geometry of every slot group at once from body-frame tables built once per scene
-  (a half-plane is a polygon of one unbounded edge), at the seven poses of the stencil (the
-  centre and ``±ε`` along ``x``, ``y``, ``θ``; the twist points share the centre's geometry);
+* the slot rows of every slot group at once, at the seven poses of the stencil (the centre
+  and ``±ε`` along ``x``, ``y``, ``θ``; the twist points share the centre's geometry), from
+  body-frame tables built once per scene: each shape's vertices, edge normals and edge
+  directions (its contact tangents) rotate together, and a half-plane is a polygon of one
+  unbounded edge;
 * each mode's system holds only the slots that the mode activates and that are candidates at
-  the centre: ``solve_mode``'s system is the identity on every other row (so the candidates
-  are the centre's at every point of the stencil, where ``contact_problem`` at a shifted pose
-  could drop or add a slot crossing the margin within ``±ε``: a spurious jump);
-* ``solve_mode``'s two iterated Tikhonov passes (the second, the friction split among
-  redundant sticking contacts, only for modes with sticking slots, as ``solve_mode`` on one
-  mode: it leaves the step unchanged where the mode's system is solvable, and decides the
-  regularised answer where it is not);
+  the centre (sorted from a table of each mode's slots built once per model):
+  ``solve_mode``'s system is the identity on every other row (so the candidates are the
+  centre's at every point of the stencil, where ``contact_problem`` at a shifted pose could
+  drop or add a slot crossing the margin within ``±ε``: a spurious jump);
+* ``solve_mode``'s two iterated Tikhonov passes; the second (the friction split among
+  redundant sticking contacts) runs on every mode and is kept for those with sticking
+  slots, as ``solve_mode`` on one mode: it leaves the step unchanged where the mode's system
+  is solvable, and decides the regularised answer where it is not;
 * ``is_consistent``'s tests on every slot, knowing which carry impulses;
-* nothing is validated: the model checks its inputs at its public methods.
+* one host synchronisation (the size of the systems) and no validation: the model checks its
+  inputs at its public methods.
+
+Every number is computed by the same operations, in the same order, as in the previous
+implementation (which used about 260 operations): the results are the same to the bit.
 """
 
 from __future__ import annotations
@@ -44,8 +52,8 @@ _FAR = 1e30
 _KINK_RATIO = 10.0
 #: State size: pose and twist.
 _STATE = 6
-#: Per-slot features of :func:`slot_rows`: ``φ``, ``Jn`` (3), ``Jt`` (3), ``bn``, ``bt``.
-_FEATURES = 9
+#: Tikhonov shift of ``solve_mode`` relative to the largest diagonal entry of the system.
+_SQRT_EPS = torch.finfo(torch.float64).eps ** 0.5
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,26 +64,35 @@ class SlotLayout:
     kinematic bodies, static polygons, half-planes]`` (that of their poses), padded to ``V``
     edges: a polygon's padding vertices repeat its first vertex and its padding edges have zero
     normal and direction and lie far away; a half-plane is a single edge of unbounded length
-    (and no direction), at the zero pose. Slot groups (``G``) pair a receiver's vertices with
-    the other shape's edges.
+    at the zero pose, whose direction (its tangent) lies within reach everywhere. Slot groups
+    (``G``) pair a receiver's vertices with the other shape's edges; every group has the
+    tracked body on one side.
 
     Attributes:
-        frame: ``(Ns, 3V, 2)`` body-frame vertices, outward edge normals and edge directions
-            of every shape (edge ``e`` runs from vertex ``e`` to ``e + 1``).
+        frame: ``(Ns, 3V + 1, 2)`` body-frame rows of every shape: vertices, outward edge
+            normals, edge directions (the normals turned by +90°; edge ``e`` runs from vertex
+            ``e`` to ``e + 1``) and the origin (zero).
+        frame_turned: ``(Ns, 3V + 1, 2)`` the same rows turned by +90°, so that a shape at
+            angle ``θ`` has the rows ``cos θ · frame + sin θ · frame_turned``.
+        translated: ``(3V + 1, 1)`` 1 on the rows that move with the shape's position (the
+            vertices and the origin), 0 on the normals and directions.
         static_poses: ``(Nf, 3)`` poses of the static shapes.
-        receiver: ``(G,)`` shape of each group's vertices.
-        other: ``(G,)`` shape of its edges.
+        group_shapes: ``(2G,)`` shape of each group's vertices, then of its edges.
+        group_kinematic: ``(G,)`` index of each group's kinematic body (0 if it has none).
         edge_offset: ``(G, 1, 2V)`` ``a_e · n_e`` and ``a_e · d_e`` of the other shape's edges
             in its body frame (``a_e`` the edge's first vertex).
         facing_offset: ``(G, 1, V)`` ``(a_e − c) · n_e``, ``c`` the other shape's vertex mean.
         edge_reach: ``(G, 1, V)`` the other shape's edge lengths plus the margin.
         tie_tolerance: ``(G, 1, 1)`` absolute tolerance of equally close edges.
-        slot_source: ``(S,)`` each slot's index among the groups' ``G·V`` vertex slots.
-        dynamic_sign: ``(S, 1)`` ``+1`` where the tracked body is the slot's receiver (owns its
-            vertex), ``-1`` where it is the other body.
-        kinematic: ``(S,)`` index of the slot's kinematic body (0 if it has none).
-        kinematic_sign: ``(S, 1)`` ``+1`` where the kinematic body is the receiver, ``-1``
-            where it is the other body, 0 where the slot has none.
+        feature_sign: ``(G, V, 9)`` signs of the features of :func:`slot_rows` as
+            :func:`slot_rows` first computes them (``φ``, ``n``, ``r · t``, ``t``, ``r · n``
+            and the kinematic body's velocity along ``n`` and ``t``): the tracked body's
+            columns of the rows are ``±(n, r × n = −r · t)`` and ``±(t, r × t = r · n)``, ``+``
+            where it is the receiver (owns the vertex), and the known velocities count with
+            ``+1`` where the kinematic body is the receiver, ``-1`` where it is the other
+            body, 0 where the group has none.
+        slot_source: ``(S,)`` each slot's index among the groups' ``G·V`` vertex slots, or
+            None where they are the same (every receiver has ``V`` vertices).
         mu: ``(S,)`` friction coefficients.
         inverse_mass: ``(3,)`` diagonal of the tracked body's inverse mass matrix.
         gravity_step: ``(3,)`` the contact-free velocity change of a step, ``h M⁻¹ f``.
@@ -84,22 +101,24 @@ class SlotLayout:
         margin: candidate margin, metres.
         stencil: ``(14, 6)`` the finite-difference points in units of ``ε``: zero, the unit
             vectors, their negatives and zero again (the consistency check's point).
-        stencil_pose: ``(14,)`` index of each point's pose among those of ``stencil_poses``.
+        stencil_pose: ``(14, 1)`` index of each point's pose among those of ``stencil_poses``.
         stencil_poses: ``(7, 3)`` the distinct pose offsets in units of ``ε``.
+        closing: ``(14, 1, 1)`` 1 at the consistency check's point (whose gaps are closed),
+            else 0.
     """
 
     frame: Tensor
+    frame_turned: Tensor
+    translated: Tensor
     static_poses: Tensor
-    receiver: Tensor
-    other: Tensor
+    group_shapes: Tensor
+    group_kinematic: Tensor
     edge_offset: Tensor
     facing_offset: Tensor
     edge_reach: Tensor
     tie_tolerance: Tensor
-    slot_source: Tensor
-    dynamic_sign: Tensor
-    kinematic: Tensor
-    kinematic_sign: Tensor
+    feature_sign: Tensor
+    slot_source: Tensor | None
     mu: Tensor
     inverse_mass: Tensor
     gravity_step: Tensor
@@ -109,21 +128,44 @@ class SlotLayout:
     stencil: Tensor
     stencil_pose: Tensor
     stencil_poses: Tensor
+    closing: Tensor
 
 
 @dataclass(frozen=True, eq=False)
 class ModeTable:
     """A model's per-slot modes as the linearization uses them, built once.
 
+    Each mode's constraint system is laid out over ``W`` slots (``W`` the most slots any mode
+    activates among the candidates of the call): the slots it activates that are candidates,
+    in slot order, then others, whose rows are unused (the identity): ``W`` normal rows, then
+    ``W`` tangent rows. The table keeps each mode's first ``W_max`` slots in that order
+    without the candidates (those it activates, then the others), so a call only sorts them.
+
     Attributes:
         modes: ``(K, S)`` long per-slot modes.
+        slots: ``(K, W_max)`` long, the slots each mode activates in slot order, then the
+            first slots it does not (``W_max`` the most slots any mode activates).
+        activates: ``(K, W_max)`` bool, the mode activates the slot (mode ≥ 1).
+        sticks: ``(K, W_max)`` bool, the slot sticks in the mode (mode 1).
+        slide: ``(K, W_max)`` float64 ``±μ`` of slots sliding with friction along ``±t``,
+            else 0.
+        eyes: the ``(2w, 2w)`` float64 identities, ``w = 1 … W_max``.
         acting: ``(K, S)`` bool, the slot carries an impulse in the mode (mode ≥ 1).
-        slide: ``(K, S)`` float64 ``±μ`` of slots sliding with friction along ``±t``, else 0.
+        separated: ``(K, S)`` bool, mode 0.
+        sticking: ``(K, S)`` bool, mode 1.
+        slip_sign: ``(K, S)`` float64 ``-1`` where friction acts along ``−t`` (mode 3), else 1.
     """
 
     modes: Tensor
-    acting: Tensor
+    slots: Tensor
+    activates: Tensor
+    sticks: Tensor
     slide: Tensor
+    eyes: tuple[Tensor, ...]
+    acting: Tensor
+    separated: Tensor
+    sticking: Tensor
+    slip_sign: Tensor
 
 
 def slot_layout(scene: Scene, device: torch.device) -> SlotLayout:
@@ -144,15 +186,16 @@ def slot_layout(scene: Scene, device: torch.device) -> SlotLayout:
     shapes = [tracked, *scene.kinematic, *static, *planes]
     shape_index = {body: s for s, body in enumerate(shapes)}
     V = max(body.shape.num_vertices for body in scene.bodies if isinstance(body.shape, Polygon))
-    frame = torch.zeros(len(shapes), 3 * V, 2, dtype=f64)
+    frame = torch.zeros(len(shapes), 3 * V + 1, 2, dtype=f64)
     edge_offset = torch.full((len(shapes), 2 * V), _FAR, dtype=f64)
     facing_offset = torch.zeros(len(shapes), V, dtype=f64)
     edge_length = torch.zeros(len(shapes), V, dtype=f64)
+    turn = torch.tensor([-1.0, 1.0], dtype=f64)
     for s, body_index in enumerate(shapes):
         shape = scene.bodies[body_index].shape
         if isinstance(shape, HalfPlane):  # one edge, everywhere within reach
-            frame[s, V] = shape.normal
-            edge_offset[s, 0], edge_offset[s, V] = shape.point @ shape.normal, 0.0
+            frame[s, V], frame[s, 2 * V] = shape.normal, shape.normal.flip(-1) * turn
+            edge_offset[s, 0], edge_offset[s, V] = shape.point @ shape.normal, -_FAR
             edge_length[s, 0] = torch.inf
             continue
         local = shape.vertices.to(f64)
@@ -167,12 +210,12 @@ def slot_layout(scene: Scene, device: torch.device) -> SlotLayout:
         edge_offset[s, V : V + n] = (local * direction).sum(-1)
         facing_offset[s, :n] = ((local - local.mean(dim=0)) * outward).sum(-1)
         edge_length[s, :n] = length
+    translated = torch.zeros(3 * V + 1, 1, dtype=f64)
+    translated[:V] = translated[-1] = 1.0
 
-    receiver, other = [], []
+    receiver, other, group_kinematic = [], [], []
+    feature_sign = torch.zeros(len(scene.slot_groups), V, 9, dtype=f64)
     slot_source: list[int] = []
-    dynamic_sign: list[float] = []
-    kinematic: list[int] = []
-    kinematic_sign: list[float] = []
     mu: list[float] = []
     for g, group in enumerate(scene.slot_groups):
         receiver.append(shape_index[group.receiver])
@@ -185,12 +228,14 @@ def slot_layout(scene: Scene, device: torch.device) -> SlotLayout:
             )
         partner = group.other if group.receiver == tracked else group.receiver
         moving = scene.bodies[partner].kind == "kinematic"
-        for j in range(group.count):
-            slot_source.append(g * V + j)
-            dynamic_sign.append(1.0 if group.receiver == tracked else -1.0)
-            kinematic.append(scene.kinematic.index(partner) if moving else 0)
-            kinematic_sign.append(0.0 if not moving else 1.0 if group.receiver == partner else -1.0)
-            mu.append(float(friction))
+        group_kinematic.append(scene.kinematic.index(partner) if moving else 0)
+        dynamic = 1.0 if group.receiver == tracked else -1.0
+        known = 0.0 if not moving else 1.0 if group.receiver == partner else -1.0
+        feature_sign[g] = torch.tensor(
+            [1.0, dynamic, dynamic, -dynamic, dynamic, dynamic, dynamic, known, known]
+        )
+        slot_source.extend(g * V + j for j in range(group.count))
+        mu.extend([float(friction)] * group.count)
 
     body = scene.bodies[tracked]
     mass, inertia = float(body.mass_value().detach()), float(body.inertia_value().detach())
@@ -202,30 +247,36 @@ def slot_layout(scene: Scene, device: torch.device) -> SlotLayout:
         assert pose is not None
         static_poses[s] = pose.detach()
     eye = torch.eye(_STATE, dtype=f64)
+    closing = torch.zeros(2 * _STATE + 2, 1, 1, dtype=f64)
+    closing[-1] = 1.0
     fields = {
         "frame": frame,
+        "frame_turned": frame.flip(-1) * turn,
+        "translated": translated,
         "static_poses": static_poses,
-        "receiver": torch.tensor(receiver, dtype=torch.long),
-        "other": groups,
+        "group_shapes": torch.tensor(receiver + other, dtype=torch.long),
+        "group_kinematic": torch.tensor(group_kinematic, dtype=torch.long),
         "edge_offset": edge_offset[groups].unsqueeze(-2),
         "facing_offset": facing_offset[groups].unsqueeze(-2),
         "edge_reach": edge_length[groups].unsqueeze(-2) + scene.margin,
         "tie_tolerance": _TIE_TOLERANCE  # of a half-plane: 0, it has a single edge
         * edge_length[groups].nan_to_num(posinf=0.0).amax(-1)[:, None, None],
-        "slot_source": torch.tensor(slot_source, dtype=torch.long),
-        "dynamic_sign": torch.tensor(dynamic_sign, dtype=f64).unsqueeze(-1),
-        "kinematic": torch.tensor(kinematic, dtype=torch.long),
-        "kinematic_sign": torch.tensor(kinematic_sign, dtype=f64).unsqueeze(-1),
+        "feature_sign": feature_sign,
         "mu": torch.tensor(mu, dtype=f64),
         "inverse_mass": torch.tensor([1.0 / mass, 1.0 / mass, 1.0 / inertia], dtype=f64),
         "gravity_step": scene.h * gravity,
-        "turn": torch.tensor([-1.0, 1.0], dtype=f64),
+        "turn": turn,
         "stencil": torch.cat([eye.new_zeros(1, _STATE), eye, -eye, eye.new_zeros(1, _STATE)]),
-        "stencil_pose": torch.tensor([0, 1, 2, 3, 0, 0, 0, 4, 5, 6, 0, 0, 0, 0]),
+        "stencil_pose": torch.tensor([0, 1, 2, 3, 0, 0, 0, 4, 5, 6, 0, 0, 0, 0]).unsqueeze(-1),
         "stencil_poses": torch.cat([eye.new_zeros(1, 3), eye[:3, :3], -eye[:3, :3]]),
+        "closing": closing,
     }
+    source = None
+    if slot_source != list(range(len(scene.slot_groups) * V)):
+        source = torch.tensor(slot_source, dtype=torch.long, device=device)
     return SlotLayout(
         **{name: value.to(device) for name, value in fields.items()},
+        slot_source=source,
         h=float(scene.h),
         margin=float(scene.margin),
     )
@@ -233,55 +284,35 @@ def slot_layout(scene: Scene, device: torch.device) -> SlotLayout:
 
 def mode_table(layout: SlotLayout, modes: Tensor) -> ModeTable:
     """The :class:`ModeTable` of ``(K, S)`` long per-slot modes."""
+    f64 = torch.float64
     modes = modes.to(layout.mu.device)
-    sign = (modes == 2).to(torch.float64) - (modes == 3).to(torch.float64)
-    return ModeTable(modes=modes, acting=modes >= 1, slide=sign * layout.mu)
-
-
-def slot_geometry(layout: SlotLayout, q: Tensor, q_kinematic: Tensor) -> tuple[Tensor, Tensor]:
-    """The slot geometry of :func:`~torchcontact.sim.contact_problem`, every group at once.
-
-    For a vertex against a polygon the closest edge is the one of largest signed distance,
-    ties going to the edge that faces the vertex from the polygon's vertex mean, as in
-    :func:`~torchcontact.geometry.polygon_slots`.
-
-    Args:
-        layout: the scene's layout.
-        q: ``(*P, 3)`` poses of the tracked body.
-        q_kinematic: ``(*P, Nk, 3)`` poses of the kinematic bodies.
-
-    Returns:
-        ``(*P, S, 5)`` slot points (2), normals (2, from each slot's other body into its
-        receiver) and gaps ``φ``, and the ``(*P, S)`` bool candidates.
-    """
-    static = layout.static_poses.expand(*q.shape[:-1], -1, 3)
-    poses = torch.cat([q.unsqueeze(-2), q_kinematic, static], dim=-2)  # (*P, Ns, 3)
-    cos, sin = torch.cos(poses[..., 2]), torch.sin(poses[..., 2])
-    rotation = torch.stack([cos, sin, -sin, cos], dim=-1).unflatten(-1, (2, 2))  # Rᵀ
-    rotated = layout.frame @ rotation  # (*P, Ns, 3V, 2)
-    V = layout.facing_offset.shape[-1]
-    origin = poses[..., :2].unsqueeze(-2)
-    points = (rotated[..., :V, :] + origin).index_select(-3, layout.receiver)  # (*P, G, V, 2)
-    edges = rotated.index_select(-3, layout.other)[..., V:, :]  # normals, directions
-    relative = points - origin.index_select(-3, layout.other)
-    projection = relative @ edges.mT - layout.edge_offset  # (*P, G, V, 2V)
-    distance, along = projection[..., :V], projection[..., V:]
-    phi = distance.amax(dim=-1, keepdim=True)
-    tie = distance >= phi - layout.tie_tolerance
-    closest = torch.where(tie, distance + layout.facing_offset, -_FAR).argmax(-1, keepdim=True)
-    normal = edges.gather(-2, closest.expand(*closest.shape[:-1], 2))
-    reach = layout.edge_reach.expand(*closest.shape[:-1], V).gather(-1, closest)
-    along = along.gather(-1, closest)
-    candidate = (along >= -layout.margin) & (along <= reach) & (phi <= layout.margin)
-    geometry = torch.cat([points, normal, phi], dim=-1).flatten(-3, -2)
-    source = layout.slot_source
-    return geometry.index_select(-2, source), candidate.flatten(-3).index_select(-1, source)
+    acting = modes >= 1
+    W = max(1, int(acting.sum(-1).max()))
+    slots = torch.argsort(acting.to(torch.uint8), dim=-1, descending=True, stable=True)[:, :W]
+    sign = (modes == 2).to(f64) - (modes == 3).to(f64)
+    return ModeTable(
+        modes=modes,
+        slots=slots,
+        activates=acting.gather(-1, slots),
+        sticks=(modes == 1).gather(-1, slots),
+        slide=(sign * layout.mu).gather(-1, slots),
+        eyes=tuple(torch.eye(2 * w, dtype=f64, device=modes.device) for w in range(1, W + 1)),
+        acting=acting,
+        separated=modes == 0,
+        sticking=modes == 1,
+        slip_sign=1.0 - 2.0 * (modes == 3).to(f64),
+    )
 
 
 def slot_rows(
     layout: SlotLayout, q: Tensor, q_kinematic: Tensor, v_kinematic: Tensor
 ) -> tuple[Tensor, Tensor]:
     """Every slot's rows of the contact problem (the tracked body's columns of them).
+
+    The slot geometry is that of :func:`~torchcontact.sim.contact_problem`: for a vertex
+    against a polygon the closest edge is the one of largest signed distance, ties going to
+    the edge that faces the vertex from the polygon's vertex mean, as in
+    :func:`~torchcontact.geometry.polygon_slots`.
 
     Args:
         layout: the scene's layout.
@@ -294,44 +325,77 @@ def slot_rows(
         ``+t`` (3; direction ``−t`` is its negative), and the known velocities ``bn`` and
         ``bt`` (along ``+t``); and the ``(*P, S)`` bool candidates.
     """
-    geometry, candidate = slot_geometry(layout, q, q_kinematic)
-    point, normal = geometry[..., :2], geometry[..., 2:4]
-    tangent = normal.flip(-1) * layout.turn  # n turned by +90°
-    offset = point - q[..., None, :2]
-    moment = offset[..., :1] * normal[..., 1:] - offset[..., 1:] * normal[..., :1]  # r × n
-    along = (offset * normal).sum(-1, keepdim=True)  # r × t = r · n
-    rows = layout.dynamic_sign * torch.cat([normal, moment, tangent, along], dim=-1)
-    known = torch.zeros_like(normal)
+    G, V = layout.facing_offset.shape[0], layout.facing_offset.shape[-1]
+    static = layout.static_poses.expand(*q.shape[:-1], -1, 3)
+    poses = torch.cat([q.unsqueeze(-2), q_kinematic, static], dim=-2)  # (*P, Ns, 3)
+    angle = poses[..., 2, None, None]
+    rotated = layout.frame * torch.cos(angle) + layout.frame_turned * torch.sin(angle)
+    world = torch.addcmul(rotated, layout.translated, poses[..., None, :2])  # (*P, Ns, 3V+1, 2)
+    shapes = world.index_select(-3, layout.group_shapes)
+    points, other = shapes[..., :G, :V, :], shapes[..., G:, :, :]  # (*P, G, V, 2), (*P, G, 3V+1, 2)
+    edges = other[..., V : 3 * V, :]  # (*P, G, 2V, 2): outward normals, then directions
+    projection = (points - other[..., 3 * V :, :]) @ edges.mT - layout.edge_offset
+    distance, along = projection[..., :V], projection[..., V:]  # (*P, G, V, V) each
+    phi = distance.amax(dim=-1, keepdim=True)
+    tie = distance >= phi - layout.tie_tolerance
+    closest = torch.where(tie, distance + layout.facing_offset, -_FAR).argmax(-1, keepdim=True)
+    in_reach = (along >= -layout.margin) & (along <= layout.edge_reach)
+    candidate = in_reach.gather(-1, closest) & (phi <= layout.margin)  # (*P, G, V, 1)
+    # The closest edge's normal and direction: the slot's normal and tangent (n turned +90°).
+    index = closest.unsqueeze(-3).expand(*closest.shape[:-3], G, 2, V, 2)
+    frames = edges.unflatten(-2, (2, V)).gather(-2, index)  # (*P, G, 2, V, 2)
+    moments = (frames * (points - q[..., None, None, :2]).unsqueeze(-3)).sum(-1)  # r · n, r · t
     if q_kinematic.shape[-2]:
-        # Point velocities of the slots' kinematic bodies (a slot without one has sign 0).
-        body = torch.cat([q_kinematic, v_kinematic], dim=-1).index_select(-2, layout.kinematic)
-        turned = (point - body[..., :2]).flip(-1) * layout.turn
+        # Point velocities of the groups' kinematic bodies (a group without one has sign 0).
+        body = torch.cat([q_kinematic, v_kinematic], dim=-1).index_select(
+            -2, layout.group_kinematic
+        )
+        body = body.unsqueeze(-2)  # (*P, G, 1, 6)
+        turned = (points - body[..., :2]).flip(-1) * layout.turn
         velocity = body[..., 3:5] + body[..., 5:] * turned
-        known = torch.stack([(velocity * normal).sum(-1), (velocity * tangent).sum(-1)], -1)
-        known = layout.kinematic_sign * known
-    return torch.cat([geometry[..., 4:], rows, known], dim=-1), candidate
+        known = (frames * velocity.unsqueeze(-3)).sum(-1)  # (*P, G, 2, V): along n, t
+    else:
+        known = torch.zeros_like(moments)
+    features = torch.cat(
+        [
+            phi,
+            frames[..., 0, :, :],
+            moments[..., 1, :, None],
+            frames[..., 1, :, :],
+            moments[..., 0, :, None],
+            known.mT,
+        ],
+        dim=-1,
+    )
+    features = (features * layout.feature_sign).flatten(-3, -2)  # (*P, G·V, 9)
+    candidate = candidate.flatten(-3)
+    if layout.slot_source is None:
+        return features, candidate
+    source = layout.slot_source
+    return features.index_select(-2, source), candidate.index_select(-1, source)
 
 
-def _tikhonov(A: Tensor, b: Tensor, weights: Tensor, refinements: int) -> Tensor:
+def _tikhonov(
+    system: Tensor, diagonal: Tensor, b: Tensor, shift: Tensor, eye: Tensor, refinements: int
+) -> Tensor:
     """``solve_mode``'s iterated Tikhonov solve of ``A x = b``.
 
-    Iterates ``(A + ε P) x_{i+1} = b + ε P x_i`` from ``x_0 = 0`` with ``P = diag(weights)``
-    and ``ε = √eps · max(1, max |diag A|)`` (the 1 of ``solve_mode``'s identity rows, those of
-    the slots a mode leaves out): the solution when ``A`` is nonsingular, the one of least
-    ``xᵀ P x`` when it is singular and consistent.
+    Iterates ``(A + S) x_{i+1} = b + S x_i`` from ``x_0 = 0``, where ``A + S`` is ``system``
+    plus ``diag(diagonal)`` and ``S = diag(shift)``: the solution when ``A`` is nonsingular,
+    the one of least ``xᵀ S x`` when it is singular and consistent.
 
     Args:
-        A: ``(*B, m, m)`` system matrices.
+        system: ``(*B, m, m)`` system matrices less their diagonal additions.
+        diagonal: ``(*B, m)`` the additions to their diagonals (identity rows and shift).
         b: ``(*B, m, 1)`` right-hand sides.
-        weights: ``(*B, m, 1)`` positive regularisation weights.
+        shift: ``(*B, m, 1)`` or ``(*B, 1, 1)`` the diagonal of ``S``.
+        eye: ``(m, m)`` identity.
         refinements: number of iterations.
 
     Returns:
         ``(*B, m, 1)``.
     """
-    scale = A.diagonal(dim1=-2, dim2=-1).abs().amax(dim=-1)[..., None, None].clamp_min(1.0)
-    shift = torch.finfo(A.dtype).eps ** 0.5 * scale * weights
-    LU, pivots, _ = torch.linalg.lu_factor_ex(A + torch.diag_embed(shift.squeeze(-1)))
+    LU, pivots, _ = torch.linalg.lu_factor_ex(torch.addcmul(system, eye, diagonal.unsqueeze(-2)))
     x: Tensor = torch.linalg.lu_solve(LU, pivots, b)
     for _ in range(refinements - 1):
         x = torch.linalg.lu_solve(LU, pivots, b + shift * x)
@@ -367,90 +431,92 @@ def linearize_modes(
     Returns:
         ``F (B, K, 6, 6)``, ``c (B, K, 6)`` and ``(B, K)`` bool: the mode is consistent.
     """
-    f64 = torch.float64
-    B, (K, S), h, eps = x.shape[0], table.modes.shape, layout.h, fd_step
+    B, (K, S), h, eps, gap = x.shape[0], table.modes.shape, layout.h, fd_step, consistency_gap
     P = len(layout.stencil_poses)
     features, candidate = slot_rows(
         layout,
-        x[:, None, :3] + eps * layout.stencil_poses,
+        torch.add(x[:, None, :3], layout.stencil_poses, alpha=eps),
         q_kinematic.unsqueeze(1).expand(B, P, -1, 3),
         v_kinematic.unsqueeze(1).expand(B, P, -1, 3),
     )  # (B, 7, S, 9), (B, 7, S)
     centre, candidate = features[:, 0], candidate[:, 0]  # (B, S, 9), (B, S)
 
     # Each mode's slots: those it activates among the candidates, in slot order, then others.
-    acting = candidate.unsqueeze(1) & table.acting  # (B, K, S)
+    slots = table.slots.expand(B, K, -1)
+    acting = candidate.gather(-1, slots.flatten(1)).view_as(slots) & table.activates
     W = max(1, int(acting.sum(-1).max()))
-    keep = torch.argsort(acting.to(torch.uint8), dim=-1, descending=True, stable=True)[..., :W]
-    mode = torch.where(acting, table.modes, 0)  # (B, K, S)
-    picked = mode.gather(-1, keep)  # (B, K, W)
-    slide = table.slide.expand(B, K, S).gather(-1, keep)
-    index = keep[:, :, None, :, None].expand(B, K, P, W, _FEATURES)
-    rows = features.unsqueeze(1).expand(B, K, P, S, _FEATURES).gather(3, index)
-    phi, Jn, Jt, bn, bt = rows[:, :, layout.stencil_pose].split([1, 3, 3, 1, 1], dim=-1)
+    order = torch.argsort(acting.to(torch.uint8), dim=-1, descending=True, stable=True)[..., :W]
+    keep = slots.gather(-1, order)  # (B, K, W)
+    acting = acting.gather(-1, order)
+    sticks = acting & table.sticks.expand(B, K, -1).gather(-1, order)
+    slide = table.slide.expand(B, K, -1).gather(-1, order)[:, :, None, :, None]
 
-    # solve_mode on those slots: B·K·14 problems. Constraint rows C: normals, then tangents;
-    # impulse rows G: the same with μ Jt_d added to the normals of sliding slots. The rows of
-    # acting normals and sticking tangents make the Schur system A = C M⁻¹ Gᵀ, x = impulses;
-    # the other rows are the identity, with a zero right side.
-    on = torch.cat([picked >= 1, picked == 1], dim=-1)[:, :, None, :, None]  # (B, K, 1, 2W, 1)
-    on_f = on.to(f64)
-    C = torch.cat([Jn, Jt], dim=-2) * on_f  # (B, K, 14, 2W, 3)
-    G = torch.cat([Jn + slide[:, :, None, :, None] * Jt, Jt], dim=-2) * on_f
-    U = (G * layout.inverse_mass).mT  # M⁻¹ Gᵀ
-    A = C @ U + torch.diag_embed(1.0 - on_f.squeeze(-1))
-    point = x.unsqueeze(1) + eps * layout.stencil  # (B, 14, 6)
-    v_free = point[..., 3:] + layout.gravity_step
+    # solve_mode on those slots at the 14 points: B·K·14 problems. Constraint rows C:
+    # normals, then tangents; impulse rows G: the same with μ Jt_d added to the normals of
+    # sliding slots. The rows of acting normals and sticking tangents make the Schur system
+    # A = C M⁻¹ Gᵀ, x = impulses; the other rows are the identity, with a zero right side.
+    index = (layout.stencil_pose * S + keep.unsqueeze(2)).view(B, -1, 1)  # (B, K·14·W, 1)
+    rows = features.flatten(1, 2).gather(1, index.expand(-1, -1, 9)).view(B, K, -1, W, 9)
+    phi, Jn, Jt, bn, bt = rows.split([1, 3, 3, 1, 1], dim=-1)
+    on = torch.cat([acting, sticks, acting, sticks], dim=-1).to(torch.float64)  # (B, K, 4W)
+    rows_on = on[:, :, None, :, None]
+    CG = torch.cat([Jn, Jt, Jn + slide * Jt, Jt], dim=-2) * rows_on
+    C, U = CG[..., : 2 * W, :], (CG[..., 2 * W :, :] * layout.inverse_mass).mT  # U = M⁻¹ Gᵀ
+    system = C @ U  # (B, K, 14, 2W, 2W)
+    point = torch.add(x.unsqueeze(1), layout.stencil, alpha=eps)  # (B, 14, 6)
+    v_free = (point[..., 3:] + layout.gravity_step)[:, None, :, :, None]  # (B, 1, 14, 3, 1)
     # The last point closes the mode's gaps up to the dead zone (the consistency check).
-    closed = phi[:, :, -1:] - phi[:, :, -1:].clamp(-consistency_gap, consistency_gap)
-    phi = torch.cat([phi[:, :, :-1], closed], dim=2)
+    phi = torch.addcmul(phi, phi.clamp(-gap, gap), layout.closing, value=-1.0)
     target = torch.cat([bn + phi / h, bt], dim=-2)  # (B, K, 14, 2W, 1)
-    b = -(target * on_f + C @ v_free[:, None, :, :, None])
-    impulses = _tikhonov(A, b, torch.ones_like(b), _REFINEMENTS)
-    weighted = (picked == 1).any(dim=-1)  # (B, K)
-    if bool(weighted.any()):
-        # Redundant sticking rows leave the impulse split free: solve_mode prefers normal
-        # support and shares friction in proportion to the normal loads.
-        load = impulses[..., :W, :].clamp(min=0.0)
-        share = load.amax(dim=-2, keepdim=True).clamp_min(torch.finfo(f64).eps)
-        friction = _FRICTION_COST * share / (load + _MIN_LOAD_SHARE * share)
-        weights = torch.cat([torch.ones_like(load), friction], dim=-2)[weighted]
-        split = _tikhonov(A[weighted], b[weighted], weights, _WEIGHTED_REFINEMENTS)
-        impulses = impulses.index_put((weighted,), split)
-    v_next = v_free.unsqueeze(1) + (U @ impulses).squeeze(-1)  # (B, K, 14, 3)
+    b = torch.addcmul(C @ v_free, target, rows_on[..., : 2 * W, :]).neg()
+    off = 1.0 - on[:, :, None, : 2 * W]  # (B, K, 1, 2W): the identity rows
+    scale = system.diagonal(dim1=-2, dim2=-1).abs().amax(dim=-1, keepdim=True).clamp_min(1.0)
+    shift = (_SQRT_EPS * scale).unsqueeze(-1)  # (B, K, 14, 1, 1)
+    eye = table.eyes[W - 1]
+    impulses = _tikhonov(system, off + shift[..., 0], b, shift, eye, _REFINEMENTS)
+    # Redundant sticking rows leave the impulse split free: solve_mode prefers normal support
+    # and shares friction in proportion to the normal loads (kept for modes that stick).
+    load = impulses[..., :W, :].clamp(min=0.0)
+    share = load.amax(dim=-2, keepdim=True).clamp_min(torch.finfo(torch.float64).eps)
+    friction = _FRICTION_COST * share / (load + _MIN_LOAD_SHARE * share)
+    weighted = torch.cat([shift.expand_as(load), shift * friction], dim=-2)  # (..., 2W, 1)
+    split = _tikhonov(system, off + weighted[..., 0], b, weighted, eye, _WEIGHTED_REFINEMENTS)
+    impulses = torch.where(sticks.any(dim=-1)[:, :, None, None, None], split, impulses)
+    v_next = (v_free + U @ impulses).squeeze(-1)  # (B, K, 14, 3)
 
     # Central differences of f = (q + h v⁺, v⁺), one-sided at a kink.
     f = torch.cat([point[:, None, :, :3] + h * v_next, v_next], dim=-1)  # (B, K, 14, 6)
-    f0 = f[:, :, :1]
-    forward = (f[:, :, 1 : 1 + _STATE] - f0) / eps  # (B, K, j, i) = ∂f_i/∂x_j
-    backward = (f0 - f[:, :, 1 + _STATE : 1 + 2 * _STATE]) / eps
-    size_f = torch.linalg.vector_norm(forward, dim=-1, keepdim=True)
-    size_b = torch.linalg.vector_norm(backward, dim=-1, keepdim=True)
-    kink = torch.maximum(size_f, size_b) > _KINK_RATIO * (torch.minimum(size_f, size_b) + 1.0)
-    one_sided = torch.where(size_f <= size_b, forward, backward)
+    steps = (f[:, :, 1 : 1 + 2 * _STATE] - f[:, :, :1]) / eps  # forward, −backward
+    forward, backward = steps[:, :, :_STATE], steps[:, :, _STATE:].neg()  # (B, K, j, i)
+    size = torch.linalg.vector_norm(steps, dim=-1, keepdim=True).unflatten(2, (2, _STATE))
+    smaller, larger = torch.aminmax(size, dim=2)  # (B, K, j, 1)
+    kink = larger > _KINK_RATIO * (smaller + 1.0)
+    one_sided = torch.where(size[:, :, 0] <= size[:, :, 1], forward, backward)
     F = torch.where(kink, one_sided, 0.5 * (forward + backward)).mT  # (B, K, 6, 6)
-    c = f0.squeeze(2) - (F @ x[:, None, :, None]).squeeze(-1)
+    c = f[:, :, 0] - (F @ x[:, None, :, None]).squeeze(-1)
 
-    # is_consistent at the last point, on every slot (impulses scattered back).
-    v_touch = v_next[:, :, -1]  # (B, K, 3)
-    impulse = impulses[:, :, -1, :, 0]  # (B, K, 2W)
-    pn = torch.zeros_like(acting, dtype=f64).scatter(-1, keep, impulse[..., :W])
-    tangential = torch.zeros_like(pn).scatter(-1, keep, impulse[..., W:])
+    # is_consistent at the last point, on every slot (impulses placed back on their slots).
+    v_touch = v_next[:, :, -1, None, :, None]  # (B, K, 1, 3, 1)
+    impulse = impulses[:, :, -1, :, 0].unflatten(-1, (2, W))  # (B, K, 2, W): normal, tangent
+    placed = impulse.new_zeros(B, K, 2, S).scatter(
+        -1, keep.unsqueeze(2).expand_as(impulse), impulse
+    )
+    pn, tangential = placed.unbind(2)
     phi_all = centre[:, None, :, 0]  # (B, 1, S)
-    phi_all = torch.where(
-        table.acting, phi_all - phi_all.clamp(-consistency_gap, consistency_gap), phi_all
-    )  # (B, K, S): every slot of the mode closed, candidate or not
-    velocity = centre[:, None, :, 1:7].unflatten(-1, (2, 3)) @ v_touch[:, :, None, :, None]
+    phi_all = torch.where(table.acting, phi_all - phi_all.clamp(-gap, gap), phi_all)
+    velocity = centre[:, None, :, 1:7].unflatten(-1, (2, 3)) @ v_touch  # (B, K, S, 2, 1)
     gap_rate = velocity[..., 0, 0] + centre[:, None, :, 7] + phi_all / h  # (B, K, S)
     slip = velocity[..., 1, 0] + centre[:, None, :, 8]
-    scale = torch.cat([v_free[:, -1], centre[..., 7]], dim=-1).abs().amax(-1)[:, None, None]
-    scale = torch.maximum(scale, phi_all.abs().amax(-1, keepdim=True) / h)
+    scale = torch.cat([v_free[:, 0, -1, :, 0], centre[..., 7]], dim=-1).abs().amax(-1)
+    scale = torch.maximum(scale[:, None, None], phi_all.abs().amax(-1, keepdim=True) / h)
     v_tol = consistency_tolerance * (1.0 + scale)
     p_tol = consistency_tolerance * (1.0 + pn.abs().amax(dim=-1, keepdim=True))
-    mu = layout.mu
-    stuck = (slip.abs() <= v_tol) & (tangential.abs() <= mu * pn + p_tol)
-    slip_d = torch.where(mode == 3, -slip, slip)
-    slides = (slip_d + slip.abs() <= v_tol) & (mu * pn >= -p_tol)
-    pressed = (gap_rate.abs() <= v_tol) & (pn >= -p_tol) & torch.where(mode == 1, stuck, slides)
-    separated = (gap_rate >= -v_tol) | ~candidate.unsqueeze(1)
-    return F, c, torch.where(mode == 0, separated, pressed).all(dim=-1)
+    mu_pn = layout.mu * pn
+    speed = slip.abs()
+    stuck = (speed <= v_tol) & (tangential.abs() <= mu_pn + p_tol)
+    slides = (slip * table.slip_sign + speed <= v_tol) & (mu_pn >= -p_tol)
+    pressed = (
+        (gap_rate.abs() <= v_tol) & (pn >= -p_tol) & torch.where(table.sticking, stuck, slides)
+    )
+    consistent = torch.where(table.separated, gap_rate >= -v_tol, pressed)
+    return F, c, (consistent | ~candidate.unsqueeze(1)).all(dim=-1)

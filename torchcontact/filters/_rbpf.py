@@ -26,6 +26,8 @@ from torchcontact.filters._switching import ModeDynamics
 
 Proposal = Literal["bootstrap", "all_modes"]
 PROPOSALS: tuple[str, ...] = get_args(Proposal)
+#: Fields of :class:`ModeDynamics` that the particles need no copy of when all modes share them.
+_SHAREABLE = ("Q", "H", "d", "R")
 
 
 @runtime_checkable
@@ -226,13 +228,16 @@ class RBPF:
     log-likelihoods and the weights but not through the (discrete) resampling indices, and
     bootstrap resampling resets the weights to the constant ``1/N``. This is the usual
     biased but low-variance estimator of :math:`\nabla \log p(y_{1:T})` (e.g. Naesseth,
-    Linderman, Ranganath and Blei, "Variational sequential Monte Carlo", AISTATS 2018).
+    Linderman, Ranganath and Blei, "Variational sequential Monte Carlo", AISTATS 2018). A step
+    none of whose inputs needs a gradient records nothing for autograd (it runs in inference
+    mode) and returns ordinary tensors, with the same values.
 
     Time-varying models: every step asks the model for its per-mode dynamics
     (:meth:`SwitchingModel.mode_dynamics`, given the belief and the step's ``control``), so a
     nonlinear model is linearized once per mode and batch entry at the belief's mean (an
     extended Kalman filter per particle that shares the linearization point; exact for a
-    linear model).
+    linear model). A ``Q``, ``H``, ``d`` or ``R`` that every mode shares, given as a
+    ``(K, ...)`` view of one matrix (``expand``), is not copied to the particles.
 
     Args:
         model: the switching model.
@@ -427,13 +432,29 @@ class RBPF:
             raise ValueError(
                 f"model: mode_dynamics returned {type(dynamics).__name__}, not ModeDynamics"
             )
-        packed, mode_log_weight = self._packed_dynamics(belief, dynamics)
+        packed, shared, mode_log_weight = self._packed_dynamics(belief, dynamics)
         if mode_log_weight is not None:
             extra = mode_log_weight if extra is None else extra + mode_log_weight
         rows = self._transition_rows(belief, transition, dynamics.transition_rows)
-        if self.proposal == "bootstrap":
-            return self._step_bootstrap(belief, packed, y, observed, rows, extra, generator)
-        return self._step_all_modes(belief, packed, y, observed, rows, extra, generator)
+        # Without gradients to carry, inference mode spares each of the step's few hundred
+        # small operations autograd's bookkeeping (a fifth of the step at N = 1,000); the new
+        # belief's tensors are then copied into ordinary ones.
+        g, prior = belief.gaussians, belief.prior
+        inputs = (packed, *shared.values(), y, rows, extra, belief.log_weights, g.mean, g.cov)
+        inputs += (belief.log_evidence, prior.mean, prior.cov)
+        tracked = torch.is_grad_enabled() and any(
+            value is not None and value.requires_grad for value in inputs
+        )
+        with torch.inference_mode(not tracked):
+            if self.proposal == "bootstrap":
+                new = self._step_bootstrap(
+                    belief, packed, shared, y, observed, rows, extra, generator
+                )
+            else:
+                new = self._step_all_modes(
+                    belief, packed, shared, y, observed, rows, extra, generator
+                )
+        return new if tracked else _ordinary(new)
 
     def _transition_rows(
         self, belief: RBPFBelief, transition: Tensor, rows: Tensor | None
@@ -465,10 +486,17 @@ class RBPF:
 
     def _packed_dynamics(
         self, belief: RBPFBelief, dynamics: ModeDynamics
-    ) -> tuple[Tensor, Tensor | None]:
-        """The model's per-mode dynamics of this step, checked and packed: ``(*B', K, P)``
-        with ``*B'`` empty or broadcastable to the belief's batch, and the optional
-        ``mode_log_weight (*B', K)``."""
+    ) -> tuple[Tensor, dict[str, Tensor], Tensor | None]:
+        """The model's per-mode dynamics of this step, checked and packed.
+
+        Returns:
+            The fields that differ between modes packed into ``(*B', K, P)`` (``*B'`` empty or
+            broadcastable to the belief's batch): ``F`` and ``c``, and each of ``Q, H, d, R``
+            unless every mode shares it; the shared ones (a model's constant noise and
+            measurement, given as ``(K, ...)`` views of one matrix) by name, without the mode
+            dim (the particles need no copy of them); and the optional
+            ``mode_log_weight (*B', K)``.
+        """
         model = self.model
         K, n, m = model.num_modes, model.state_dim, model.obs_dim
         events = {
@@ -479,7 +507,7 @@ class RBPF:
             "d": (K, m),
             "R": (K, m, m),
         }
-        values: list[Tensor] = []
+        values: dict[str, Tensor] = {}
         shapes: list[tuple[str, Sequence[int]]] = [("belief", belief.batch_shape)]
         for name, event in events.items():
             value = getattr(dynamics, name)
@@ -489,7 +517,7 @@ class RBPF:
                     f"model: mode_dynamics().{name} must be a {model.dtype} tensor of shape "
                     f"(*B, {', '.join(map(str, event))}), got {describe(value)}"
                 )
-            values.append(value)
+            values[name] = value
             shapes.append((f"mode_dynamics().{name}", value.shape[:lead]))
         if broadcast_batch(shapes) != belief.batch_shape:
             raise ValueError(
@@ -497,40 +525,58 @@ class RBPF:
                 f"not broadcast to the belief's batch {tuple(belief.batch_shape)}"
             )
         batch = broadcast_batch(shapes[1:])
+        shared = {
+            name: values[name][0]
+            for name in _SHAREABLE
+            if values[name].ndim == len(events[name]) and values[name].stride(0) == 0
+        }
         packed = torch.cat(
             [
-                value.expand(*batch, *event).reshape(*batch, K, -1)
-                for value, event in zip(values, events.values(), strict=True)
+                value.expand(*batch, *events[name]).reshape(*batch, K, -1)
+                for name, value in values.items()
+                if name not in shared
             ],
             dim=-1,
         )
-        if not bool(torch.isfinite(packed).all()):
-            raise ValueError("model: mode_dynamics() returned NaN or inf")
-        log_weight = dynamics.mode_log_weight
+        log_weight, field = dynamics.mode_log_weight, "model: mode_dynamics().mode_log_weight"
         if log_weight is not None:
-            log_weight = check_tensor(
-                log_weight,
-                "model: mode_dynamics().mode_log_weight",
-                event_shape=(K,),
-                like=model.initial,
-                allow_neginf=True,
-            )
+            if not isinstance(log_weight, Tensor):
+                raise ValueError(f"{field}: expected a torch.Tensor, got {describe(log_weight)}")
+            if log_weight.dtype != model.dtype or log_weight.device != model.device:
+                raise ValueError(
+                    f"{field}: expected dtype {model.dtype} on {model.device}, got "
+                    f"{log_weight.dtype} on {log_weight.device}"
+                )
+            if log_weight.ndim < 1 or log_weight.shape[-1] != K:
+                raise ValueError(
+                    f"{field}: expected shape (*B, {K}), got {tuple(log_weight.shape)}"
+                )
             weight_batch = [
                 ("belief", belief.batch_shape),
                 ("mode_log_weight", log_weight.shape[:-1]),
             ]
             if broadcast_batch(weight_batch) != belief.batch_shape:
                 raise ValueError(
-                    f"model: mode_dynamics().mode_log_weight batch {tuple(log_weight.shape[:-1])} "
-                    f"does not broadcast to the belief's batch {tuple(belief.batch_shape)}"
+                    f"{field} batch {tuple(log_weight.shape[:-1])} does not broadcast to the "
+                    f"belief's batch {tuple(belief.batch_shape)}"
                 )
-        return packed, log_weight
+        # One test (one host synchronization) for every value: finite, except that a log-weight
+        # may be -inf (clamped away here; NaN and +inf stay).
+        checked = [packed.flatten(), *(value.flatten() for value in shared.values())]
+        if log_weight is not None:
+            checked.append(log_weight.clamp(min=0.0).flatten())
+        if not bool(torch.isfinite(torch.cat(checked)).all()):
+            if log_weight is not None and not bool(checked[-1].isfinite().all()):
+                raise ValueError(f"{field}: contains NaN or +inf")
+            raise ValueError("model: mode_dynamics() returned NaN or inf")
+        return packed, shared, log_weight
 
     def _kalman(
         self,
         mean: Tensor,
         cov: Tensor,
         params: Tensor,
+        shared: dict[str, Tensor],
         y: Tensor,
         observed: Tensor | None,
     ) -> tuple[Tensor, Tensor, Tensor]:
@@ -538,12 +584,13 @@ class RBPF:
 
         Args:
             mean: ``(n, *P)``; cov: ``(n, n, *P)`` (``*P`` = the particle batch dims).
-            params: ``(D, *P')`` packed ``F, c, Q, H, d, R`` (see :meth:`_packed_dynamics`).
+            params: ``(D, *P')`` packed per-mode fields (see :meth:`_packed_dynamics`).
+            shared: the fields every mode shares, without batch dims.
             y: ``(*B', m)`` measurement; observed: ``(*B', m)`` bool or None.
         """
         model = self.model
         n, m = model.state_dim, model.obs_dim
-        F, c, Q, H, d, R = _unpack(params, n, m)
+        F, c, Q, H, d, R = _unpack(params, shared, n, m)
         # update_core reads the lower triangle only, except that entries without a measurement
         # keep the predicted covariance as it is: symmetrize only then.
         mean, cov = predict_core(mean, cov, F, c, Q, symmetric=observed is not None)
@@ -559,6 +606,7 @@ class RBPF:
         self,
         belief: RBPFBelief,
         packed: Tensor,
+        shared: dict[str, Tensor],
         y: Tensor,
         observed: Tensor | None,
         rows: Tensor,
@@ -584,29 +632,32 @@ class RBPF:
             la.to_batch_last(belief.gaussians.mean, 1, nb + 1),
             la.to_batch_last(belief.gaussians.cov, 2, nb + 1),
             params,
+            shared,
             y,
             observed,
         )
         log_w = belief.log_weights + log_lik
         if extra is not None:
             log_w = log_w + extra.expand(*batch, extra.shape[-1]).gather(-1, modes)
-        log_w, log_evidence, dead = _normalize(log_w, belief.log_evidence)
+        log_w, log_evidence, dead, any_dead = _normalize(log_w, belief.log_evidence)
         history = torch.cat([modes.unsqueeze(-1), belief.history[..., :-1]], -1)
         # ESS = 1 / Σ w² < threshold · N, in log space
         resample = torch.logsumexp(2.0 * log_w, -1) > -math.log(max(self.ess_threshold * N, 1e-300))
-        resample = resample & ~dead
+        if any_dead:
+            resample = resample & ~dead
         if bool(resample.any()):
             index = resample_indices(log_w, N, self.resampling, generator)
             identity = torch.arange(N, device=index.device)
             index = torch.where(resample.unsqueeze(-1), index, identity)
             modes, history, mean, cov = _gather(index, modes, history, mean, cov)
             log_w = torch.where(resample.unsqueeze(-1), -math.log(N), log_w)
-        return self._belief(belief, modes, log_w, mean, cov, log_evidence, history, dead)
+        return self._belief(belief, modes, log_w, mean, cov, log_evidence, history, dead, any_dead)
 
     def _step_all_modes(
         self,
         belief: RBPFBelief,
         packed: Tensor,
+        shared: dict[str, Tensor],
         y: Tensor,
         observed: Tensor | None,
         rows: Tensor,
@@ -629,6 +680,7 @@ class RBPF:
             mean.repeat_interleave(K, dim=-1),
             cov.repeat_interleave(K, dim=-1),
             params,
+            shared,
             y,
             observed,
         )
@@ -636,7 +688,7 @@ class RBPF:
         log_w = belief.log_weights.unsqueeze(-1) + log_trans + log_lik.unflatten(-1, (N, K))
         if extra is not None:
             log_w = log_w + extra.unsqueeze(-2)
-        log_w, log_evidence, dead = _normalize(log_w.flatten(-2), belief.log_evidence)
+        log_w, log_evidence, dead, any_dead = _normalize(log_w.flatten(-2), belief.log_evidence)
         index, log_w = optimal_resample_core(log_w, N, generator)
         modes = index % K
         parents = torch.div(index, K, rounding_mode="floor")
@@ -645,7 +697,7 @@ class RBPF:
         )
         history = torch.cat([modes.unsqueeze(-1), history[..., :-1]], -1)
         mean, cov = _gather_states(index, mean, cov)
-        return self._belief(belief, modes, log_w, mean, cov, log_evidence, history, dead)
+        return self._belief(belief, modes, log_w, mean, cov, log_evidence, history, dead, any_dead)
 
     def _belief(
         self,
@@ -657,9 +709,10 @@ class RBPF:
         log_evidence: Tensor,
         history: Tensor,
         dead: Tensor,
+        any_dead: bool,
     ) -> RBPFBelief:
         """Assemble the new belief, resetting the entries flagged ``dead`` to the prior."""
-        if bool(dead.any()):
+        if any_dead:
             batch = previous.batch_shape
             modes0, log_w0, history0 = self._initial_particles(batch)
             mean0, cov0 = self._prior_particles(previous.prior, len(batch))
@@ -721,23 +774,44 @@ class RBPF:
         return model.transition[u]
 
 
-def _unpack(params: Tensor, n: int, m: int) -> list[Tensor]:
-    """Split ``(D, *P)`` packed parameters into batch-last ``F, c, Q, H, d, R`` views."""
+def _ordinary(belief: RBPFBelief) -> RBPFBelief:
+    """``belief`` with the tensors an inference-mode step made copied into ordinary ones (the
+    same values and memory layout; the prior is the previous belief's)."""
+    g = belief.gaussians
+    return RBPFBelief(
+        modes=belief.modes.clone(),
+        log_weights=belief.log_weights.clone(),
+        gaussians=unchecked_gaussian(g.mean.clone(), g.cov.clone()),
+        log_evidence=belief.log_evidence.clone(),
+        history=belief.history.clone(),
+        degenerate=belief.degenerate.clone(),
+        prior=belief.prior,
+        num_modes=belief.num_modes,
+    )
+
+
+def _unpack(params: Tensor, shared: dict[str, Tensor], n: int, m: int) -> list[Tensor]:
+    """Batch-last ``F, c, Q, H, d, R`` views: the packed ones split from ``(D, *P)`` params,
+    the shared ones with ``len(P)`` batch dims of size 1."""
     batch = params.shape[1:]
-    shapes = [(n, n), (n,), (n, n), (m, n), (m,), (m, m)]
-    sizes = [math.prod(shape) for shape in shapes]
-    return [
-        part.reshape(*shape, *batch)
-        for part, shape in zip(torch.split(params, sizes), shapes, strict=True)
-    ]
+    shapes = {"F": (n, n), "c": (n,), "Q": (n, n), "H": (m, n), "d": (m,), "R": (m, m)}
+    names = [name for name in shapes if name not in shared]
+    parts = torch.split(params, [math.prod(shapes[name]) for name in names])
+    fields = {
+        name: part.reshape(*shapes[name], *batch) for name, part in zip(names, parts, strict=True)
+    }
+    ones = (1,) * len(batch)
+    fields.update({name: value.reshape(*value.shape, *ones) for name, value in shared.items()})
+    return [fields[name] for name in shapes]
 
 
-def _normalize(log_w: Tensor, log_evidence: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+def _normalize(log_w: Tensor, log_evidence: Tensor) -> tuple[Tensor, Tensor, Tensor, bool]:
     """Normalize incremental log-weights ``(*B, M)`` and accumulate the evidence ``(*B,)``.
 
-    Returns ``(log_w, log_evidence, dead)``: where every weight is zero (``dead``), the
-    log-weights are replaced by a uniform placeholder (the caller resets the entry) and the
-    evidence becomes ``-inf``; gradients stay finite everywhere.
+    Returns ``(log_w, log_evidence, dead, any_dead)``: where every weight is zero (``dead``),
+    the log-weights are replaced by a uniform placeholder (the caller resets the entry) and
+    the evidence becomes ``-inf``; gradients stay finite everywhere. ``any_dead`` is
+    ``dead.any()``, known without another host synchronization.
     """
     increment = torch.logsumexp(log_w, -1)
     dead = torch.isneginf(increment)
@@ -749,9 +823,8 @@ def _normalize(log_w: Tensor, log_evidence: Tensor) -> tuple[Tensor, Tensor, Ten
         log_w = torch.where(dead.unsqueeze(-1), 0.0, log_w)
         increment = torch.logsumexp(log_w, -1)
         log_evidence = torch.where(dead, -math.inf, log_evidence + increment)
-    else:
-        log_evidence = log_evidence + increment
-    return log_w - increment.unsqueeze(-1), log_evidence, dead
+        return log_w - increment.unsqueeze(-1), log_evidence, dead, True
+    return log_w - increment.unsqueeze(-1), log_evidence + increment, dead, False
 
 
 def _gather_states(index: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
