@@ -219,7 +219,7 @@ def run(args: Args) -> dict[str, Any]:
     sigma = config.pose_noise_std
     text = (
         f"# Neural Q on the RBPF belief, peg-in-hole ({counters['transitions']} training "
-        f"transitions, best network from round {best['round'] + 1})\n\n"
+        f"transitions; kept: {_kept(best['round'])})\n\n"
         f"Camera noise σ = {1e3 * sigma[0]:.1f} mm, {sigma[2]:.3f} rad; {args.particles} "
         f"particles; tabular Q from {args.tabular_run} ({agent.num_states} states).\n\n"
         f"{results_table(evaluations)}\n"
@@ -231,6 +231,13 @@ def run(args: Args) -> dict[str, Any]:
         "best_round": best["round"],
         "evaluations": {e.setting: e.success_rate for e in evaluations},
     }
+
+
+def _kept(round_index: int) -> str:
+    """Which network the validation kept, in words (round ``-1`` is the untrained one)."""
+    if round_index < 0:
+        return "the untrained network, i.e. QMDP"
+    return f"the network after round {round_index + 1}"
 
 
 def _checkpoint(path: Path) -> dict[str, Any] | None:
