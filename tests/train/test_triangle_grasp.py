@@ -1,44 +1,83 @@
-"""The triangle-grasp tracking experiment runs end to end on a tiny budget."""
+"""The triangle-grasp tracking experiment: end to end on a tiny budget, and its pieces."""
 
 from __future__ import annotations
 
+import json
 import math
+from collections.abc import Iterator
 from pathlib import Path
+from types import ModuleType
 
 import pytest
+import torch
 
 from tests.train import load_script
+from torchcontact.filters import RBPF, Gaussian, PlanarContactModel
+
+F64 = torch.float64
 
 
-def _load():
+@pytest.fixture(scope="module")
+def module() -> ModuleType:
     return load_script("triangle_grasp")
 
 
 @pytest.fixture(scope="module")
-def result(tmp_path_factory: pytest.TempPathFactory) -> dict:
-    module = _load()
+def result(module: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict]:
     out = tmp_path_factory.mktemp("runs")
-    args = module.Args(name="tiny", out_dir=str(out), fast=True, seed=0)
-    return module.run(args)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # the script's timings are single-threaded
+    try:
+        yield module.run(module.Args(name="tiny", out_dir=str(out), fast=True, seed=0))
+    finally:
+        torch.set_num_threads(threads)
 
 
 def test_outputs_exist(result: dict) -> None:
     run_dir = Path(result["run_dir"])
-    for name in ("results.md", "trajectory.png", "errors.png", "modes.png"):
+    for name in ("results.md", "metrics.json", "snapshots.png", "errors.png", "modes.png"):
         assert (run_dir / name).is_file(), name
     assert any(p.name.startswith("events.out.tfevents") for p in run_dir.iterdir())
-    assert "| rbpf |" in (run_dir / "results.md").read_text()
+    text = (run_dir / "results.md").read_text()
+    for method in ("rbpf", "pf", "pf_same_n", "ekf", "vision"):
+        assert f"| {method} |" in text
+    saved = json.loads((run_dir / "metrics.json").read_text())
+    assert (
+        saved["metrics"]["rbpf"]["pos_rmse_occ_mm"] == result["metrics"]["rbpf"]["pos_rmse_occ_mm"]
+    )
 
 
 def test_metrics_are_sane(result: dict) -> None:
     metrics = result["metrics"]
-    assert set(metrics) == {"rbpf", "pf", "ekf", "vision"}
+    assert set(metrics) == {"rbpf", "pf", "pf_same_n", "ekf", "vision"}
     for row in metrics.values():
         assert all(math.isfinite(v) for v in row.values()), row
-    assert 0.0 <= metrics["rbpf"]["mode_accuracy"] <= 1.0
-    assert metrics["rbpf"]["mode_logprob"] <= 0.0
+    rbpf = metrics["rbpf"]
+    for method in ("rbpf", "pf", "pf_same_n"):
+        assert 0.0 <= metrics[method]["mode_accuracy"] <= 1.0
+        assert 0.0 <= metrics[method]["touch_accuracy"] <= 1.0
+        assert metrics[method]["mode_logprob"] <= 0.0
     # The contact model tracks the pushed triangle through the occlusion; held vision does not.
-    assert metrics["rbpf"]["pos_rmse_occ_mm"] < metrics["vision"]["pos_rmse_occ_mm"]
+    assert rbpf["pos_rmse_occ_mm"] < 2.0 < metrics["vision"]["pos_rmse_occ_mm"]
+    assert rbpf["theta_rmse_occ_deg"] < 0.2 < metrics["vision"]["theta_rmse_occ_deg"]
+    assert rbpf["mode_accuracy"] > 0.85
+    assert result["ratio_pos_occ"] == pytest.approx(
+        rbpf["pos_rmse_occ_mm"]
+        / min(metrics[m]["pos_rmse_occ_mm"] for m in ("pf", "ekf", "vision"))
+    )
+
+
+def test_plain_pf_is_calibrated_to_the_rbpf_time(result: dict) -> None:
+    metrics = result["metrics"]
+    assert metrics["rbpf"]["particles"] == 20  # fast mode
+    assert metrics["pf_same_n"]["particles"] == 20
+    assert metrics["pf"]["particles"] == result["pf_particles"] >= 2
+    calibration = result["calibration"]  # particles -> CPU seconds of a PF run
+    assert {8, 64, result["pf_particles"]} <= set(calibration)
+    assert calibration[8] < calibration[64]
+    assert metrics["pf"]["cpu_ms_per_step"] == pytest.approx(
+        1e3 * calibration[result["pf_particles"]] / 48
+    )
 
 
 def test_ground_truth_stays_above_the_table(result: dict) -> None:
@@ -46,10 +85,64 @@ def test_ground_truth_stays_above_the_table(result: dict) -> None:
     assert result["min_vertex_height"] > -1e-3  # at most the LCP's sub-millimetre slack
 
 
-def test_help_lists_the_arguments(capsys: pytest.CaptureFixture[str]) -> None:
-    module = _load()
+def _flat_belief(module: ModuleType, heights: list[float]) -> tuple[PlanarContactModel, object]:
+    """A one-mode model and a belief whose particles rest flat with their base at ``heights``."""
+    scene = module.triangle_scene(0.5)
+    lift = module.HEIGHT / 3  # centroid above the base
+    model = PlanarContactModel(
+        scene=scene,
+        modes=torch.zeros(1, scene.num_slots, dtype=torch.long),
+        Q=1e-8 * torch.eye(6, dtype=F64),
+        R=1e-4 * torch.eye(3, dtype=F64),
+        transition=torch.ones(1, 1, dtype=F64),
+        initial=torch.ones(1, dtype=F64),
+    )
+    mean = torch.zeros(len(heights), 6, dtype=F64)
+    mean[:, 1] = torch.tensor(heights, dtype=F64) + lift
+    cov = torch.diag(torch.tensor([25e-6] * 2 + [1e-3] + [1e-4] * 3, dtype=F64))
+    prior = Gaussian(mean, cov.expand(len(heights), 6, 6))
+    return model, RBPF(model, 2, proposal="bootstrap").init(prior)
+
+
+def test_projection_lifts_penetrating_particles_onto_the_table(module: ModuleType) -> None:
+    model, belief = _flat_belief(module, [-0.002, 0.001])
+    fingers = torch.tensor([[-0.07, module.FINGER_Y, 0.0], [0.07, module.FINGER_Y, 0.0]])
+    projected = module.project_out_of_contact(
+        belief, model.scene, fingers.to(F64).expand(2, 2, 3), gap_sigma=1e-5
+    )
+    lift = module.HEIGHT / 3
+    before, after = belief.gaussians, projected.gaussians
+    # 2 mm under the table: lifted onto it (to well within the pseudo-measurement's 10 µm).
+    torch.testing.assert_close(
+        after.mean[0, :, 1], torch.full((2,), lift, dtype=F64), atol=2e-5, rtol=0
+    )
+    torch.testing.assert_close(after.mean[0, :, 2], torch.zeros(2, dtype=F64), atol=1e-6, rtol=0)
+    assert bool((after.cov[0, :, 1, 1] < 1e-3 * before.cov[0, :, 1, 1]).all())
+    # 1 mm above the table: untouched.
+    torch.testing.assert_close(after.mean[1], before.mean[1], atol=0, rtol=0)
+    torch.testing.assert_close(after.cov[1], before.cov[1], atol=0, rtol=0)
+    torch.testing.assert_close(projected.log_weights, belief.log_weights, atol=0, rtol=0)
+    with pytest.raises(ValueError, match="gap_sigma"):
+        module.project_out_of_contact(belief, model.scene, fingers.to(F64).expand(2, 2, 3), 0.0)
+
+
+def test_mode_labels_and_touch_codes(module: ModuleType) -> None:
+    scene = module.triangle_scene(0.5)
+    mode = torch.zeros(scene.num_slots, dtype=torch.long)
+    assert module.mode_label(scene, mode) == "free"
+    mode[0], mode[1] = 1, 1  # two triangle vertices stick on the table
+    assert module.mode_label(scene, mode) == "table 2 stick"
+    right = next(g for g in scene.slot_groups if scene.bodies[g.receiver].name == "right")
+    mode[right.start] = 3  # a right-finger corner slides on the triangle
+    assert module.mode_label(scene, mode) == "table 2 stick, right 1 slide"
+    bits = {name: 1 << scene.index(name) for name in ("table", "left", "right")}
+    codes = module.touch_codes(scene, torch.stack([torch.zeros_like(mode), mode]))
+    assert codes.tolist() == [0, bits["table"] | bits["right"]]
+
+
+def test_help_lists_the_arguments(module: ModuleType, capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         module.main(["--help"])
     text = capsys.readouterr().out
-    assert "--rbpf-particles" in text
-    assert "--trials" in text
+    for flag in ("--rbpf-particles", "--pf-particles", "--trials", "--gap-sigma"):
+        assert flag in text
