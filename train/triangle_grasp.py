@@ -1017,7 +1017,7 @@ def plot_errors(
     axes[0].set_ylabel("position RMSE (mm)")
     axes[1].set_ylabel("angle RMSE (deg)")
     axes[1].set_xlabel("time (s); shaded: camera occluded")
-    axes[0].legend(fontsize=7, ncol=3)
+    axes[0].legend(fontsize=7, ncol=3, loc="lower center", bbox_to_anchor=(0.5, 1.0), frameon=False)
     fig.tight_layout()
     return fig
 

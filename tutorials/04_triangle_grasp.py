@@ -168,8 +168,10 @@ fig.savefig(OUT / "04_snapshots.png", dpi=80)
 # %% [markdown]
 # Top: the truth, the fingers and the RBPF's particle means (red dots). Bottom: a 12 × 6 mm
 # window centred on the true position: the particles (size ∝ weight) of both filters and the
-# estimates. Before the occlusion both filters average the camera; once the right finger
-# pushes, the contact fixes the triangle's x to the finger and the RBPF's cloud collapses.
+# estimates. Before the occlusion both filters average the camera. While a finger pushes, the
+# contact ties the triangle's x to the finger's and the RBPF's cloud collapses; it spreads
+# again when the finger stops and the triangle slides on by a distance that depends on the
+# true friction, which the filters only know to ±20 %.
 
 # %%
 metrics, errors = grasp.evaluate(trials, outputs)
