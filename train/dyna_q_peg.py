@@ -42,6 +42,7 @@ from torchcontact.experiments import (
     PotentialShaping,
     QLookup,
     evaluate_settings,
+    load_checkpoint,
     parse_dataclass,
     results_table,
     run_round,
@@ -102,13 +103,6 @@ def _exploration(value: str) -> Exploration:
     return cast(Exploration, value)
 
 
-def _checkpoint(path: Path) -> dict[str, Any] | None:
-    if not path.exists():
-        return None
-    loaded: dict[str, Any] = torch.load(path, weights_only=False)
-    return loaded
-
-
 def run(args: Args) -> dict[str, Any]:
     """Train, evaluate, write the artefacts; return the metrics."""
     torch.set_num_threads(1)
@@ -126,10 +120,8 @@ def run(args: Args) -> dict[str, Any]:
     )
     shaping = PotentialShaping(args.shaping)
     start, parts, history = 0, [], []
-    saved = _checkpoint(checkpoint_path) if args.resume else None
+    saved = load_checkpoint(checkpoint_path, args) if args.resume else None
     if saved is not None:
-        if saved["args"] != dataclasses.asdict(args) | {"rounds": saved["args"]["rounds"]}:
-            raise ValueError(f"{checkpoint_path} was written with other arguments")
         agent.load_state_dict(saved["agent"])
         start, parts, history = saved["round"], [saved["transitions"]], saved["history"]
     env = PegInHole2DVector(num_envs=args.num_envs, config=_config(args, noisy=False))

@@ -36,6 +36,7 @@ from torchcontact.experiments import (
     belief_features,
     evaluate,
     evaluate_settings,
+    load_checkpoint,
     parse_dataclass,
     results_table,
 )
@@ -143,10 +144,8 @@ def run(args: Args) -> dict[str, Any]:
     eval_env = PegInHole2DVector(num_envs=args.eval_episodes, config=config, observation="noisy")
     start, counters, history = 0, {"transitions": 0, "updates": 0}, []
     best: dict[str, Any] = {}
-    saved = _checkpoint(checkpoint_path) if args.resume else None
+    saved = load_checkpoint(checkpoint_path, args) if args.resume else None
     if saved is not None:
-        if saved["args"] != dataclasses.asdict(args) | {"rounds": saved["args"]["rounds"]}:
-            raise ValueError(f"{checkpoint_path} was written with other arguments")
         online.load_state_dict(saved["online"])
         target.load_state_dict(saved["target"])
         optimizer.load_state_dict(saved["optimizer"])
@@ -238,13 +237,6 @@ def _kept(round_index: int) -> str:
     if round_index < 0:
         return "the untrained network, i.e. QMDP"
     return f"the network after round {round_index + 1}"
-
-
-def _checkpoint(path: Path) -> dict[str, Any] | None:
-    if not path.exists():
-        return None
-    loaded: dict[str, Any] = torch.load(path, weights_only=False)
-    return loaded
 
 
 def _validate(

@@ -5,8 +5,11 @@ Peg-in-hole (:mod:`torchcontact.envs`): :func:`run_round` trains (or evaluates) 
 :class:`PotentialShaping` and records the steps; :func:`evaluate` executes the learned policy
 under uncertainty (oracle, raw observation, QMDP over the RBPF belief, neural Q on
 :func:`belief_features`), with :class:`QLookup` mapping manipulation states to Q values.
+Scripts read their command line with :func:`parse_dataclass` and resume with
+:func:`load_checkpoint`.
 """
 
+from torchcontact.experiments._checkpoint import load_checkpoint
 from torchcontact.experiments._cli import parse_dataclass
 from torchcontact.experiments._peg_execution import (
     NUM_BELIEF_FEATURES,
@@ -32,6 +35,7 @@ __all__ = [
     "belief_features",
     "evaluate",
     "evaluate_settings",
+    "load_checkpoint",
     "parse_dataclass",
     "results_table",
     "run_round",

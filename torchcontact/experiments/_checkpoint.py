@@ -1,0 +1,31 @@
+"""Resuming an experiment script from the checkpoint in its run folder."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Any
+
+import torch
+
+
+def load_checkpoint(path: Path, args: Any) -> dict[str, Any] | None:
+    """The checkpoint at ``path`` (``None`` if there is none), checked against ``args``.
+
+    A run is extended by resuming with a larger ``rounds``; every other argument must equal
+    the one the checkpoint was written with (its ``"args"`` entry, ``dataclasses.asdict``
+    of the script's argument dataclass).
+
+    Args:
+        path: the checkpoint file (``torch.save`` of a dict with an ``"args"`` entry).
+        args: the script's arguments, a dataclass instance with a ``rounds`` field.
+
+    Raises:
+        ValueError: the checkpoint was written with other arguments.
+    """
+    if not path.exists():
+        return None
+    saved: dict[str, Any] = torch.load(path, weights_only=False)
+    if saved["args"] != dataclasses.asdict(args) | {"rounds": saved["args"]["rounds"]}:
+        raise ValueError(f"{path} was written with other arguments")
+    return saved
