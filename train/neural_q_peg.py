@@ -289,7 +289,6 @@ def _train_round(
     successes = np.zeros(B, dtype=bool)
     losses: list[float] = []
     q_means: list[float] = []
-    epsilon = schedule(counters["transitions"])
     while live.any():
         epsilon = schedule(counters["transitions"])
         with torch.no_grad():
