@@ -9,7 +9,9 @@ graph and fitted belief model. The network (:class:`~torchcontact.rl.QNetwork`) 
 Q table and its residual MLP starts at zero, so before any update it acts exactly as QMDP over
 the RBPF belief. It is then trained with double DQN (replay buffer, target network, Huber
 loss, linearly decaying ε) on rounds of noisy-observation episodes with the filter in the
-loop, on the same shaped reward and discount factor as the tabular agent. The greedy network
+loop, on the same shaped reward and discount factor as the tabular agent. Only the residual
+learns unless ``--train-table``: the head stays the tabular Q, so the network learns what the
+belief's spread and pose add to QMDP. The greedy network
 is evaluated every few rounds on validation episodes; the best one (the untrained network
 included) is kept. Finally oracle, raw, QMDP and neural Q are compared on the same fresh
 episodes. Writes TensorBoard logs, checkpoints (resumed exactly), ``network.pt`` and
@@ -67,7 +69,11 @@ class Args:
     rounds: int = dataclasses.field(default=20, metadata={"help": "training rounds"})
     particles: int = dataclasses.field(default=64, metadata={"help": "RBPF particles"})
     hidden: int = dataclasses.field(default=64, metadata={"help": "width of the 2 hidden layers"})
-    learning_rate: float = dataclasses.field(default=3e-4, metadata={"help": "Adam step size"})
+    learning_rate: float = dataclasses.field(default=1e-4, metadata={"help": "Adam step size"})
+    train_table: bool = dataclasses.field(
+        default=False,
+        metadata={"help": "also train the QMDP head (default: frozen; only the residual learns)"},
+    )
     buffer_size: int = dataclasses.field(default=10_000, metadata={"help": "replay capacity"})
     batch_size: int = dataclasses.field(default=128, metadata={"help": "replay batch size"})
     learning_starts: int = dataclasses.field(
@@ -136,8 +142,10 @@ def run(args: Args) -> dict[str, Any]:
     online = QNetwork.from_table(
         lookup.table.to(DTYPE), NUM_BELIEF_FEATURES, hidden=(args.hidden, args.hidden)
     )
+    online.table.requires_grad_(args.train_table)
     target = copy.deepcopy(online)
-    optimizer = torch.optim.Adam(online.parameters(), lr=args.learning_rate)
+    trained = [p for p in online.parameters() if p.requires_grad]
+    optimizer = torch.optim.Adam(trained, lr=args.learning_rate)
     buffer = ReplayBuffer(args.buffer_size, online.input_size, dtype=DTYPE, seed=args.seed)
     schedule = EpsilonSchedule(args.epsilon_start, args.epsilon_end, args.epsilon_steps)
     env = PegInHole2DVector(num_envs=args.num_envs, config=config, observation="noisy")

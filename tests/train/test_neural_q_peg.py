@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from tests.train import load_script
+from torchcontact.rl import DynaQ
 
 
 @pytest.fixture(scope="module")
@@ -83,6 +84,22 @@ def test_trains_from_the_tabular_run_and_writes_its_artefacts(
     assert "| neural | 3 |" in (run_dir / "results.md").read_text()
     state = torch.load(run_dir / "network.pt")
     assert state["table"].shape[1] == 7
+
+
+def test_the_qmdp_head_stays_the_tabular_q_unless_asked(
+    module: ModuleType, tabular_run: Path, straight: dict[str, Any], tmp_path: Path
+) -> None:
+    saved = torch.load(tabular_run / "checkpoint.pt", weights_only=False)
+    table = DynaQ.from_state_dict(saved["agent"]).q_table(dtype=torch.float32)
+
+    def last_table(run_dir: str) -> torch.Tensor:
+        checkpoint = torch.load(Path(run_dir) / "checkpoint.pt", weights_only=False)
+        trained: torch.Tensor = checkpoint["online"]["table"]
+        return trained
+
+    assert torch.equal(last_table(straight["run_dir"]), table)
+    trained = module.run(_tiny(module, tmp_path, tabular_run, train_table=True))
+    assert not torch.equal(last_table(trained["run_dir"]), table)
 
 
 def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
