@@ -200,6 +200,39 @@ def test_q_update_by_hand() -> None:
     assert agent.planning_updates == 0
 
 
+def test_visit_step_sizes_average_the_first_targets_then_stay_at_alpha() -> None:
+    """``α(s, a) = max(α, 1/N(s, a))``: with terminal targets (no bootstrap) the first
+    ``1/α`` updates give the running mean of the rewards, later ones the constant-α rule."""
+    rewards = [3.0, -1.0, 5.0, 2.0, 7.0, -4.0]
+    agent = DynaQ(
+        2, alpha=0.25, gamma=0.9, epsilon=0.0, planning_steps=0, seed=0, step_size="visits"
+    )
+    expected = 0.0
+    for n, reward in enumerate(rewards, start=1):
+        agent.observe("s", 1, reward, "t", True)
+        if n <= 4:
+            assert float(agent.q_values("s")[1]) == pytest.approx(np.mean(rewards[:n]), abs=1e-15)
+        expected += max(0.25, 1 / n) * (reward - expected)
+        assert float(agent.q_values("s")[1]) == pytest.approx(expected, abs=1e-15)
+    assert agent.step_size == "visits"
+    constant = DynaQ(2, alpha=0.25, gamma=0.9, epsilon=0.0, planning_steps=0, seed=0)
+    constant.observe("s", 1, 3.0, "t", True)
+    assert float(constant.q_values("s")[1]) == 0.75  # α · target: the once-tried undervalued
+    # Planning updates of a pair use its real visit count: one visit, one planning update
+    # from a model that says "reward 3, then t (value 2)" gives exactly that target.
+    planner = DynaQ(
+        1, alpha=0.1, gamma=0.5, epsilon=0.0, planning_steps=0, seed=0, step_size="visits"
+    )
+    planner.observe("t", 0, 4.0, "end", True)  # Q(t) = 4
+    planner.observe("s", 0, 3.0, "t", False)  # Q(s) = 3 + 0.5 · 4 = 5
+    planner.observe("t", 0, 0.0, "end", True)  # Q(t) = 4 + ½ (0 − 4) = 2 (two visits)
+    for _ in range(50):
+        planner.plan(1)
+    assert float(planner.q_values("s")[0]) == pytest.approx(3.0 + 0.5 * 2.0, abs=1e-12)
+    clone = DynaQ.from_state_dict(planner.state_dict())
+    assert clone.step_size == "visits"
+
+
 def test_act_breaks_ties_at_random_and_greedy_takes_the_lowest() -> None:
     agent = DynaQ(3, alpha=1.0, gamma=0.0, epsilon=0.0, planning_steps=0, seed=1)
     agent.observe("s", 0, 1.0, "t", True)
@@ -357,6 +390,7 @@ def test_other_states_get_stand_ins_in_the_graph() -> None:
         ({"seed": -1}, "seed"),
         ({"sampler": "dense"}, "sampler"),
         ({"exploration": "boltzmann"}, "exploration"),
+        ({"step_size": "harmonic"}, "step_size"),
     ],
 )
 def test_bad_settings_raise(kwargs: dict[str, Any], name: str) -> None:

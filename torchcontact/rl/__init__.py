@@ -10,7 +10,7 @@
 """
 
 from torchcontact.rl._dqn import dqn_loss, update_target
-from torchcontact.rl._dyna_q import DynaQ, Exploration, Sampler, SweepResult
+from torchcontact.rl._dyna_q import DynaQ, Exploration, Sampler, StepSize, SweepResult
 from torchcontact.rl._q_network import QNetwork
 from torchcontact.rl._qmdp import qmdp_action, qmdp_values
 from torchcontact.rl._replay import ReplayBuffer, Transitions
@@ -23,6 +23,7 @@ __all__ = [
     "QNetwork",
     "ReplayBuffer",
     "Sampler",
+    "StepSize",
     "SweepResult",
     "Transitions",
     "dqn_loss",

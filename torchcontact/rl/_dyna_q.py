@@ -19,6 +19,7 @@ _FORMAT = "torchcontact.DynaQ"
 
 Sampler = Literal["index", "graph"]
 Exploration = Literal["uniform", "least_tried"]
+StepSize = Literal["constant", "visits"]
 
 
 @dataclass(frozen=True)
@@ -81,6 +82,14 @@ class DynaQ:
     is tried twice by exploration — a directed, count-based exploration that leaves fewer
     untried actions (stuck at ``initial_value``) on the greedy policy's path.
 
+    **Step sizes.** ``step_size="constant"`` updates every pair with ``α``;
+    ``"visits"`` uses ``α(s, a) = max(α, 1 / N(s, a))`` with ``N(s, a)`` the real transitions
+    observed from the pair so far (planning updates of the pair use the same value). The
+    first updates of a pair then average its targets instead of shrinking the first one by
+    ``α`` (a pair tried once has ``Q = target``, not ``α · target``), so rarely tried actions
+    are not undervalued against often tried ones; after ``1/α`` visits it is constant-``α``
+    Q-learning (Even-Dar and Mansour 2003 on polynomial step sizes).
+
     **Sweeps.** :meth:`sweep` runs value iteration on the learned model (expected updates of
     every observed pair until the values stop changing, Sutton and Barto Section 8.5): the
     sample updates of planning then leave no inconsistency between neighbouring states'
@@ -100,6 +109,7 @@ class DynaQ:
         sampler: ``"index"`` or ``"graph"``, see above.
         initial_value: the Q value of every state-action pair before its first update.
         exploration: ``"uniform"`` or ``"least_tried"``, see above.
+        step_size: ``"constant"`` or ``"visits"``, see above.
 
     Raises:
         ValueError: an argument is out of range (the message names it).
@@ -122,6 +132,7 @@ class DynaQ:
         sampler: Sampler = "index",
         initial_value: float = 0.0,
         exploration: Exploration = "uniform",
+        step_size: StepSize = "constant",
     ) -> None:
         self._num_actions = check_int("num_actions", num_actions, low=1)
         self._initial_value = check_real("initial_value", initial_value)
@@ -134,6 +145,7 @@ class DynaQ:
             raise ValueError(f"sampler must be 'index' or 'graph', got {sampler!r}")
         self._sampler: Sampler = sampler
         self._exploration = _check_exploration("exploration", exploration)
+        self._step_size = _check_step_size("step_size", step_size)
         self._rng = np.random.default_rng(self._seed)
         self._torch_rng = torch.Generator().manual_seed(self._seed)
         self._reset_tables()
@@ -207,6 +219,11 @@ class DynaQ:
     def exploration(self) -> Exploration:
         """How :meth:`act` explores: ``"uniform"`` or ``"least_tried"``."""
         return self._exploration
+
+    @property
+    def step_size(self) -> StepSize:
+        """``"constant"`` or ``"visits"`` (see the class docstring)."""
+        return self._step_size
 
     @property
     def seed(self) -> int:
@@ -355,9 +372,15 @@ class DynaQ:
             self._terminal[s2] = True
         q = self._q
         target = r if terminal else r + self._gamma * float(q[s2].max())
-        q[s, a] += self._alpha * (target - q[s, a])
+        q[s, a] += self._pair_alpha(s, a) * (target - q[s, a])
         self._steps += 1
         self._plan()
+
+    def _pair_alpha(self, s: int, a: int) -> float:
+        """The step size of pair ``(s, a)`` (observed at least once)."""
+        if self._step_size == "constant":
+            return self._alpha
+        return max(self._alpha, 1.0 / float(self._pair_totals[self._pair_ids[(s, a)]]))
 
     def _check_hashable(self, name: str, state: object) -> Hashable:
         try:
@@ -457,8 +480,12 @@ class DynaQ:
                 s2, count, total = edges[k]
                 targets.append(s2)
                 rewards.append(total / count)
-        q, terminal, alpha, gamma = self._q, self._terminal, self._alpha, self._gamma
-        for s, a, s2, r in zip(sources, actions, targets, rewards, strict=True):
+        if self._step_size == "constant":
+            alphas = [self._alpha] * n
+        else:
+            alphas = np.maximum(self._alpha, 1.0 / self._pair_totals[picks]).tolist()
+        q, terminal, gamma = self._q, self._terminal, self._gamma
+        for s, a, s2, r, alpha in zip(sources, actions, targets, rewards, alphas, strict=True):
             target = r if terminal[s2] else r + gamma * float(q[s2].max())
             q[s, a] += alpha * (target - q[s, a])
         self._planning_updates += n
@@ -539,6 +566,7 @@ class DynaQ:
             "sampler": self._sampler,
             "initial_value": self._initial_value,
             "exploration": self._exploration,
+            "step_size": self._step_size,
             "states": list(self._table.states),
             "q_table": torch.from_numpy(self._q[:K].copy()),
             "terminal": torch.from_numpy(self._terminal[:K].copy()),
@@ -600,6 +628,9 @@ class DynaQ:
         self._exploration = _check_exploration(
             "state_dict exploration", state_dict.get("exploration", "uniform")
         )
+        self._step_size = _check_step_size(
+            "state_dict step_size", state_dict.get("step_size", "constant")
+        )
         self._reset_tables()
         for index, state in enumerate(states):
             if self._register("state_dict states", state) != index:
@@ -660,7 +691,8 @@ class DynaQ:
             f"DynaQ(num_actions={self._num_actions}, alpha={self._alpha}, gamma={self._gamma}, "
             f"epsilon={self._epsilon}, planning_steps={self._planning_steps}, "
             f"seed={self._seed}, sampler={self._sampler!r}, "
-            f"exploration={self._exploration!r}, states={self.num_states}, "
+            f"exploration={self._exploration!r}, step_size={self._step_size!r}, "
+            f"states={self.num_states}, "
             f"steps={self._steps})"
         )
 
@@ -671,6 +703,14 @@ def _check_exploration(name: str, value: object) -> Exploration:
     if value == "least_tried":
         return "least_tried"
     raise ValueError(f"{name} must be 'uniform' or 'least_tried', got {value!r}")
+
+
+def _check_step_size(name: str, value: object) -> StepSize:
+    if value == "constant":
+        return "constant"
+    if value == "visits":
+        return "visits"
+    raise ValueError(f"{name} must be 'constant' or 'visits', got {value!r}")
 
 
 def _grow(array: np.ndarray, size: int) -> np.ndarray:
