@@ -68,15 +68,16 @@ def test_planning_needs_several_times_fewer_episodes() -> None:
     assert without >= 3 * with_planning, (without, with_planning)
 
 
-def _model_fixed_point(agent: DynaQ, gamma: float) -> np.ndarray:
+def _model_fixed_point(agent: DynaQ, gamma: float, penalty: float = 0.0) -> np.ndarray:
     """Value iteration on the agent's learned graph: unvisited pairs stay 0 (as in the agent),
-    states reached as terminal have value 0."""
+    states reached as terminal have value 0; rewards less ``penalty / √N(s, a)``."""
     graph, A, K = agent.graph, agent.num_actions, agent.num_states
     T = graph.transition_tensor(dtype=torch.float64).numpy()
     R = graph.reward_tensor(dtype=torch.float64).numpy()
-    visited = np.array([[graph.count(graph.states[i], a) > 0 for a in range(A)] for i in range(K)])
+    counts = np.array([[graph.count(graph.states[i], a) for a in range(A)] for i in range(K)])
+    visited = counts > 0
     terminal = np.array([agent.is_terminal(s) for s in agent.states])
-    expected_reward = np.einsum("aij,aij->ia", T, R)
+    expected_reward = np.einsum("aij,aij->ia", T, R) - penalty / np.sqrt(np.maximum(counts, 1))
     q = np.zeros((K, A))
     for _ in range(600):
         value = np.where(terminal, 0.0, q.max(-1))
@@ -85,35 +86,70 @@ def _model_fixed_point(agent: DynaQ, gamma: float) -> np.ndarray:
 
 
 @pytest.mark.parametrize("sampler", SAMPLERS)
-def test_planning_converges_to_the_graph_model_fixed_point(sampler: Sampler) -> None:
+@pytest.mark.parametrize("penalty", [0.0, 0.3])
+def test_planning_converges_to_the_graph_model_fixed_point(
+    sampler: Sampler, penalty: float
+) -> None:
     """After little exploration (so many pairs are unvisited), planning with α = 1 converges
-    to the Bellman fixed point of the learned model computed from the graph's tensors."""
+    to the Bellman fixed point of the learned (penalized) model computed from the graph's
+    tensors."""
     world, gamma = GridWorld(), 0.9
-    agent = DynaQ(4, alpha=0.5, gamma=gamma, epsilon=0.3, planning_steps=5, seed=4, sampler=sampler)
+    agent = DynaQ(
+        4,
+        alpha=0.5,
+        gamma=gamma,
+        epsilon=0.3,
+        planning_steps=5,
+        seed=4,
+        sampler=sampler,
+        planning_penalty=penalty,
+    )
     for _ in range(2):
         run_episode(world, agent)
     agent.alpha = 1.0
     agent.plan(20_000)
     np.testing.assert_allclose(
-        agent.q_table().numpy(), _model_fixed_point(agent, gamma), rtol=0, atol=1e-9
+        agent.q_table().numpy(), _model_fixed_point(agent, gamma, penalty), rtol=0, atol=1e-9
     )
 
 
-def test_sweep_is_value_iteration_on_the_graph_model() -> None:
+@pytest.mark.parametrize("penalty", [0.0, 0.3])
+def test_sweep_is_value_iteration_on_the_graph_model(penalty: float) -> None:
     """One call of ``sweep`` lands on the fixed point that 600 dense Bellman backups over the
     graph's tensors reach, from any starting table (here, the half-learned one)."""
     world, gamma = GridWorld(slip=0.2), 0.9
-    agent = DynaQ(4, alpha=0.5, gamma=gamma, epsilon=0.3, planning_steps=0, seed=4)
+    agent = DynaQ(
+        4, alpha=0.5, gamma=gamma, epsilon=0.3, planning_steps=0, seed=4, planning_penalty=penalty
+    )
     _train(agent, world, np.random.default_rng(1), world.start, 300)
     result = agent.sweep(tolerance=1e-12)
     assert result.converged
     assert result.residual <= 1e-12
     assert 10 < result.sweeps < 600
     np.testing.assert_allclose(
-        agent.q_table().numpy(), _model_fixed_point(agent, gamma), rtol=0, atol=1e-10
+        agent.q_table().numpy(), _model_fixed_point(agent, gamma, penalty), rtol=0, atol=1e-10
     )
     again = agent.sweep(tolerance=1e-12)
     assert again.sweeps == 1  # already a fixed point
+
+
+def test_the_planning_penalty_prefers_the_well_tried_action_over_one_lucky_sample() -> None:
+    """Action 0 paid 1.0 in each of 100 tries, action 1 paid 1.2 once: the plain model's
+    sweep prefers action 1, the penalized one (β = 0.5: 1.0 − 0.05 against 1.2 − 0.5) action 0.
+    Real updates are not penalized."""
+    values = {}
+    for penalty in (0.0, 0.5):
+        agent = DynaQ(2, alpha=1.0, gamma=0.9, planning_steps=0, seed=0, planning_penalty=penalty)
+        for _ in range(100):
+            agent.observe("s", 0, 1.0, "end", True)
+        agent.observe("s", 1, 1.2, "end", True)
+        assert agent.q_values("s").tolist() == [1.0, 1.2]
+        agent.sweep()
+        values[penalty] = agent.q_values("s").tolist()
+        assert agent.planning_penalty == penalty
+        assert DynaQ.from_state_dict(agent.state_dict()).planning_penalty == penalty
+    assert values[0.0] == pytest.approx([1.0, 1.2], abs=1e-15)
+    assert values[0.5] == pytest.approx([0.95, 0.7], abs=1e-15)
 
 
 def test_sweep_reports_non_convergence() -> None:
@@ -391,6 +427,8 @@ def test_other_states_get_stand_ins_in_the_graph() -> None:
         ({"sampler": "dense"}, "sampler"),
         ({"exploration": "boltzmann"}, "exploration"),
         ({"step_size": "harmonic"}, "step_size"),
+        ({"planning_penalty": -0.1}, "planning_penalty"),
+        ({"planning_penalty": math.inf}, "planning_penalty"),
     ],
 )
 def test_bad_settings_raise(kwargs: dict[str, Any], name: str) -> None:

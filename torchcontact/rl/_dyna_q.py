@@ -90,6 +90,17 @@ class DynaQ:
     are not undervalued against often tried ones; after ``1/α`` visits it is constant-``α``
     Q-learning (Even-Dar and Mansour 2003 on polynomial step sizes).
 
+    **Pessimistic planning.** With ``planning_penalty = β > 0`` every planning update and
+    every sweep uses the reward ``R̂(s, a, s′) − β / √N(s, a)`` (real updates are unchanged):
+    a lower confidence bound on the empirical model. Planning and sweeps take the maximum
+    over actions of values estimated from the model, so pairs seen once or twice, whose one
+    sampled outcome happened to be lucky, are overvalued and the bias compounds along
+    chains of such pairs (the optimizer's curse). When the action gaps are small against
+    that noise (long horizons, shaped rewards, an aliased state grid), an unpenalized model
+    draws the greedy policy into barely explored regions; the penalty shrinks as the pair is
+    visited (pessimism in the face of uncertainty, as in model-based offline RL: Yu et al.,
+    "MOPO", NeurIPS 2020; the opposite sign of Dyna-Q+'s exploration bonus).
+
     **Sweeps.** :meth:`sweep` runs value iteration on the learned model (expected updates of
     every observed pair until the values stop changing, Sutton and Barto Section 8.5): the
     sample updates of planning then leave no inconsistency between neighbouring states'
@@ -110,6 +121,7 @@ class DynaQ:
         initial_value: the Q value of every state-action pair before its first update.
         exploration: ``"uniform"`` or ``"least_tried"``, see above.
         step_size: ``"constant"`` or ``"visits"``, see above.
+        planning_penalty: ``β >= 0``, see above (0: the plain empirical model).
 
     Raises:
         ValueError: an argument is out of range (the message names it).
@@ -133,6 +145,7 @@ class DynaQ:
         initial_value: float = 0.0,
         exploration: Exploration = "uniform",
         step_size: StepSize = "constant",
+        planning_penalty: float = 0.0,
     ) -> None:
         self._num_actions = check_int("num_actions", num_actions, low=1)
         self._initial_value = check_real("initial_value", initial_value)
@@ -146,6 +159,7 @@ class DynaQ:
         self._sampler: Sampler = sampler
         self._exploration = _check_exploration("exploration", exploration)
         self._step_size = _check_step_size("step_size", step_size)
+        self._planning_penalty = check_real("planning_penalty", planning_penalty, low=0.0)
         self._rng = np.random.default_rng(self._seed)
         self._torch_rng = torch.Generator().manual_seed(self._seed)
         self._reset_tables()
@@ -224,6 +238,11 @@ class DynaQ:
     def step_size(self) -> StepSize:
         """``"constant"`` or ``"visits"`` (see the class docstring)."""
         return self._step_size
+
+    @property
+    def planning_penalty(self) -> float:
+        """``β``, the pessimism of planning and sweeps (see the class docstring)."""
+        return self._planning_penalty
 
     @property
     def seed(self) -> int:
@@ -480,6 +499,9 @@ class DynaQ:
                 s2, count, total = edges[k]
                 targets.append(s2)
                 rewards.append(total / count)
+        if self._planning_penalty > 0:
+            penalty = self._planning_penalty / np.sqrt(self._pair_totals[picks])
+            rewards = (np.asarray(rewards) - penalty).tolist()
         if self._step_size == "constant":
             alphas = [self._alpha] * n
         else:
@@ -494,8 +516,9 @@ class DynaQ:
         """Value iteration on the learned model, in place.
 
         Every observed pair gets the expected update
-        ``Q(s, a) ← Σ_s′ P(s′ | s, a) (R(s, a, s′) + γ max_b Q(s′, b))`` (no bootstrap from
-        terminal states), all pairs at once per sweep, until no value changes by more than
+        ``Q(s, a) ← Σ_s′ P(s′ | s, a) (R(s, a, s′) + γ max_b Q(s′, b)) − β / √N(s, a)`` (no
+        bootstrap from terminal states; ``β`` = :attr:`planning_penalty`), all pairs at once
+        per sweep, until no value changes by more than
         ``tolerance``. Pairs never observed keep their values. For ``γ < 1`` this converges
         to the optimal Q function of the empirical model (a γ-contraction).
 
@@ -525,10 +548,11 @@ class DynaQ:
         reward = probability * total / count  # P(s′|s,a) R(s,a,s′)
         source, action = self._pairs[:num_pairs, 0], self._pairs[:num_pairs, 1]
         q, live = self._q, ~self._terminal[target]
+        penalty = self._planning_penalty / np.sqrt(self._pair_totals[:num_pairs])
         residual = float("inf")
         for done in range(1, max_sweeps + 1):
             backup = reward + probability * self._gamma * np.where(live, q[target].max(1), 0.0)
-            values = np.bincount(pair, weights=backup, minlength=num_pairs)
+            values = np.bincount(pair, weights=backup, minlength=num_pairs) - penalty
             residual = float(np.abs(values - q[source, action]).max())
             q[source, action] = values
             if residual <= tolerance:
@@ -567,6 +591,7 @@ class DynaQ:
             "initial_value": self._initial_value,
             "exploration": self._exploration,
             "step_size": self._step_size,
+            "planning_penalty": self._planning_penalty,
             "states": list(self._table.states),
             "q_table": torch.from_numpy(self._q[:K].copy()),
             "terminal": torch.from_numpy(self._terminal[:K].copy()),
@@ -631,6 +656,9 @@ class DynaQ:
         self._step_size = _check_step_size(
             "state_dict step_size", state_dict.get("step_size", "constant")
         )
+        self._planning_penalty = check_real(
+            "state_dict planning_penalty", state_dict.get("planning_penalty", 0.0), low=0.0
+        )
         self._reset_tables()
         for index, state in enumerate(states):
             if self._register("state_dict states", state) != index:
@@ -692,6 +720,7 @@ class DynaQ:
             f"epsilon={self._epsilon}, planning_steps={self._planning_steps}, "
             f"seed={self._seed}, sampler={self._sampler!r}, "
             f"exploration={self._exploration!r}, step_size={self._step_size!r}, "
+            f"planning_penalty={self._planning_penalty}, "
             f"states={self.num_states}, "
             f"steps={self._steps})"
         )
