@@ -318,6 +318,43 @@ def test_tactile_likelihood_counts_the_triggered_sensors() -> None:
     torch.testing.assert_close(got, torch.tensor(expected, dtype=F64))
 
 
+def test_tactile_likelihood_of_modes_that_share_their_slots() -> None:
+    """Modes that activate the same slots (sticking or sliding either way) are evaluated
+    once: every mode gets exactly what a model of that mode alone computes."""
+    scene = _scene()
+    tactile = TactileArray(
+        positions=torch.tensor([[-WIDTH / 2, 0.0], [0.0, -HEIGHT / 2]], dtype=F64),
+        normals=torch.tensor([[-1.0, 0.0], [0.0, -1.0]], dtype=F64),
+        radius=torch.tensor([0.04, 0.11], dtype=F64),
+        half_angle=0.3,
+        false_positive=0.1,
+        false_negative=0.2,
+    )
+    table = torch.zeros(5, scene.num_slots, dtype=torch.long)
+    table[0, :2] = 1
+    table[1, 2:] = 2
+    table[2, :2] = torch.tensor([2, 3])  # the slots of mode 0
+    table[3, :] = 1
+    table[4, 2:] = 3  # the slots of mode 1
+    model = PlanarContactModel(scene=scene, modes=table, **_noise(5))
+    gen = torch.Generator().manual_seed(0)
+    pose = torch.tensor([0.0, HEIGHT / 2, 0.0], dtype=F64) + 1e-3 * torch.randn(
+        4, 3, dtype=F64, generator=gen
+    )
+    control = KinematicControl(
+        q=torch.tensor([[-0.11, 0.035, 0.0]], dtype=F64).expand(4, 1, 3),
+        v=torch.zeros(4, 1, 3, dtype=F64),
+    )
+    readings = torch.rand(4, 2, generator=gen) > 0.5
+    got = model.tactile_log_likelihood(tactile, readings, pose=pose, control=control)
+    for k in range(len(table)):
+        alone = PlanarContactModel(scene=scene, modes=table[k : k + 1], **_noise(1))
+        one = alone.tactile_log_likelihood(tactile, readings, pose=pose, control=control)
+        assert torch.equal(got[:, k], one[:, 0])
+    assert torch.equal(got[:, 0], got[:, 2])
+    assert torch.equal(got[:, 1], got[:, 4])
+
+
 @dataclass(frozen=True, eq=False)
 class _BatchedLinear:
     """A linear switching model that hands out its dynamics expanded to a batch."""

@@ -190,6 +190,37 @@ def test_mask_equals_row_deletion() -> None:
         assert abs(ll[b].item() - ll_ref) < 1e-12
 
 
+def test_update_log_likelihood_is_update_cores_to_the_bit() -> None:
+    """The likelihood alone equals update_core's: from the full covariance (any H, with and
+    without a mask that leaves an entry unobserved) and, for an H that reads the leading
+    components, from their mean and covariance block; at sizes on both sides of the
+    products' switch between a broadcast reduction and accumulation."""
+    from torchcontact.filters import _linalg as la
+    from torchcontact.filters._kalman import update_core, update_log_likelihood
+
+    gen = torch.Generator().manual_seed(7)
+    n, k, r = 6, 3, 3
+    select = torch.zeros(k, n, dtype=F64)
+    select[:, :r] = torch.eye(r, dtype=F64)
+    for B in (40, 700):
+        mean = torch.randn(n, B, dtype=F64, generator=gen)
+        cov = la.to_batch_last(_spd(B, n, n, gen=gen), 2, 1)
+        R = la.to_batch_last(_spd(B, k, k, scale=0.5, gen=gen), 2, 1)
+        y = torch.randn(k, B, dtype=F64, generator=gen)
+        d = torch.randn(k, 1, dtype=F64, generator=gen)
+        observed = torch.rand(k, B, generator=gen) > 0.3
+        observed[:, 0] = False
+        for H in (select, torch.randn(k, n, dtype=F64, generator=gen)):
+            for obs in (None, observed):
+                *_, expected = update_core(mean, cov, y, H[..., None], d, R, obs)
+                got = update_log_likelihood(mean, cov, y, H[..., None], d, R, obs)
+                assert torch.equal(got, expected)
+        for obs in (None, observed):
+            *_, expected = update_core(mean, cov, y, select[..., None], None, R, obs)
+            got = update_log_likelihood(mean[:r], cov[:r, :r], y, select[..., None], None, R, obs)
+            assert torch.equal(got, expected)
+
+
 def test_partial_nan_without_mask_raises() -> None:
     s = _system(2, 3, 2)
     y = s["ys"][0].clone()

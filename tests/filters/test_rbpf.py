@@ -217,6 +217,23 @@ def test_all_modes_without_reduction_equals_enumeration() -> None:
     assert not belief.degenerate.any()
 
 
+def test_all_modes_with_a_shared_partial_measurement_equals_enumeration() -> None:
+    """A measurement that every mode shares and that reads the first state component only:
+    the children's likelihoods come from the leading block of their prediction, and the
+    survivors' Kalman updates from their parents; the filter stays exact."""
+    problem = _problem(extra=True, seed=5)
+    H = np.array([[1.0, 0.0]])
+    problem.arrays["H"] = np.broadcast_to(H, (K, 1, N_STATE)).copy()
+    exact = problem.exact()
+    model = problem.model(H=torch.tensor(H, dtype=F64).expand(K, 1, N_STATE))
+    rbpf = RBPF(model, K ** (T + 1), proposal="all_modes", max_lag=T)
+    belief = _run(rbpf, problem, seed=0)
+    assert abs(belief.log_evidence.item() - exact.log_evidence) < 1e-10
+    np.testing.assert_allclose(belief.mode_marginals().numpy(), exact.mode_marginals, atol=1e-10)
+    np.testing.assert_allclose(belief.mean().numpy(), exact.mean, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(belief.cov().numpy(), exact.cov, rtol=0, atol=1e-10)
+
+
 @pytest.mark.parametrize("proposal", ["bootstrap", "all_modes"])
 def test_estimates_converge_to_enumeration_as_particles_grow(proposal: str) -> None:
     problem = _problem(seed=4)

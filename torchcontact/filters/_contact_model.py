@@ -395,7 +395,7 @@ class PlanarContactModel:
             raise ValueError(f"pose: expected a floating (*B, 3) tensor, got {describe(pose)}")
         if not isinstance(readings, Tensor) or readings.dtype != torch.bool:
             raise ValueError(f"readings: expected a bool (*B, S) tensor, got {describe(readings)}")
-        K, dtype = self.num_modes, tactile.positions.dtype
+        dtype = tactile.positions.dtype
         batch = pose.shape[:-1]
         q_kin, v_kin = self._control(control, batch, dtype)
         pose = pose.to(dtype)
@@ -406,8 +406,10 @@ class PlanarContactModel:
             mode=torch.zeros(*batch, self.scene.num_slots, dtype=torch.long),
         )
         _, geometry = contact_problem(self.scene, state, control=v_kin)
-        expand = (*batch, K)
-        modes = self.modes.expand(*expand, -1)
+        # The readings depend on a mode only through the slots it activates: evaluate each
+        # distinct set once (U of them) and hand every mode its set's log-likelihood.
+        acting, which = self._acting_sets
+        expand = (*batch, acting.shape[0])
         active = geometry.active.unsqueeze(-2).expand(*expand, -1)
         contacts = object_contacts(
             self.scene,
@@ -416,12 +418,12 @@ class PlanarContactModel:
             points=geometry.points.unsqueeze(-3).expand(*expand, -1, 2),
             normals=geometry.normals.unsqueeze(-3).expand(*expand, -1, 2),
             pn=torch.ones(*expand, self.scene.num_slots, dtype=dtype),
-            mode=modes,
+            mode=acting.expand(*expand, -1),
             active=active,
         )
-        on = tactile.reading_probability(tactile.triggered(contacts))  # (*B, K, S_s)
+        on = tactile.reading_probability(tactile.triggered(contacts))  # (*B, U, S_s)
         log_lik = torch.where(readings.unsqueeze(-2), torch.log(on), torch.log1p(-on)).sum(-1)
-        return log_lik.to(self.dtype)
+        return log_lik.index_select(-1, which).to(self.dtype)
 
     # ------------------------------------------------------------------------------------------
 
@@ -443,6 +445,13 @@ class PlanarContactModel:
             consistent=self.Q.new_zeros(()),
             inconsistent=torch.tensor(penalty, dtype=self.dtype, device=self.device),
         )
+
+    @cached_property
+    def _acting_sets(self) -> tuple[Tensor, Tensor]:
+        """The distinct sets of slots that the modes activate, ``(U, S)`` long (1 = acting),
+        and each mode's set, ``(K,)`` long; built at their first use."""
+        sets, which = torch.unique((self.modes >= 1).to(torch.long), dim=0, return_inverse=True)
+        return sets, which
 
     @cached_property
     def _layout(self) -> SlotLayout:

@@ -98,6 +98,58 @@ def update_core(
     return new_mean, new_cov, log_lik
 
 
+def update_log_likelihood(
+    mean: Tensor,
+    cov: Tensor,
+    y: Tensor,
+    H: Tensor,
+    d: Tensor | None,
+    R: Tensor,
+    observed: Tensor | None,
+) -> Tensor:
+    """The log-likelihood of :func:`update_core` alone, by the same operations (the same values).
+
+    ``mean`` and ``cov`` may be the leading ``r`` components and ``(r, r)`` block when ``H``
+    reads only the leading ``r`` state components (its other columns are zero): the first
+    ``r`` rows of the Cholesky factor, and so ``S = H P Hᵀ + R``, depend on that block only.
+    The products are computed as :func:`update_core` computes them at the full size ``n``, so
+    the likelihood is the same, to the bit where ``H``'s entries are 0 and ±1 (otherwise
+    ``H μ`` may round differently), except when a full covariance of the batch is not
+    numerically positive definite (then :func:`update_core` factors every matrix in the
+    semi-definite mode of :func:`~torchcontact.filters._linalg.psd_cholesky`, which rounds
+    differently).
+
+    Args:
+        mean: ``(r, *B)``; cov: ``(r, r, *B)``, ``r <= n``; y, H, d, R, observed: as in
+            :func:`update_core` (``H`` is ``(k, n, *B)``).
+
+    Returns:
+        ``(*B)`` log-likelihoods.
+    """
+    k, n, r = H.shape[0], H.shape[1], cov.shape[0]
+    batch_ndim = mean.ndim - 1
+    if observed is not None:
+        H = H * observed.unsqueeze(1)
+        y = torch.where(observed, y, 0.0)
+        if d is not None:
+            d = torch.where(observed, d, 0.0)
+        both = observed.unsqueeze(1) & observed.unsqueeze(0)
+        R = torch.where(both, R, la.eye(k, batch_ndim, R))
+    residual = y - la.mv(H[:, :r], mean)
+    if d is not None:
+        residual = residual - d
+    root = la.psd_cholesky(cov)
+    batch = math.prod(torch.broadcast_shapes(mean.shape[1:], cov.shape[2:], H.shape[2:]))
+    HC = la.mm(H[:, :r], root, size=k * n * n * batch)
+    low = la.Cholesky(la.add_(la.mm_t(HC, HC, size=k * n * k * batch), R))
+    z = low.solve(residual.unsqueeze(1))[:, 0]
+    num_obs: float | Tensor = float(k) if observed is None else observed.sum(0).to(mean.dtype)
+    log_lik = -0.5 * ((z * z).sum(0) + low.log_det() + num_obs * _LOG_2PI)
+    if observed is not None:
+        log_lik = torch.where(~observed.any(0), 0.0, log_lik)
+    return log_lik
+
+
 def observed_components(y: Tensor, mask: Tensor | None) -> Tensor | None:
     """The ``(*B, k)`` components of ``y`` an update uses, or None when it uses all of them.
 

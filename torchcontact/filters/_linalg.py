@@ -51,16 +51,25 @@ def to_batch_first(x: Tensor, event_ndim: int) -> Tensor:
     return x.movedim(list(range(event_ndim)), list(range(x.ndim - event_ndim, x.ndim)))
 
 
-def _product(a: Tensor, b: Tensor, a_dims: tuple[int, int], b_dims: tuple[int, int]) -> Tensor:
+def _product(
+    a: Tensor,
+    b: Tensor,
+    a_dims: tuple[int, int],
+    b_dims: tuple[int, int],
+    size: int | None = None,
+) -> Tensor:
     """``out[i, j] = Σ_l a[i, l] b[l, j]`` where ``a``'s (i, l) and ``b``'s (l, j) dims are given.
 
     Small batches use one broadcast product and a reduction (fewest kernel launches); large
-    ones accumulate over ``l`` to keep the intermediate in cache.
+    ones accumulate over ``l`` to keep the intermediate in cache. The two round differently, so
+    a caller that computes a block of a larger product passes that product's ``size``
+    (entries of the broadcast intermediate) to get the block's entries to the bit.
     """
     rows, inner, cols = a.shape[a_dims[0]], a.shape[a_dims[1]], b.shape[b_dims[1]]
-    size = rows * inner * cols
-    for sa, sb in zip(a.shape[2:], b.shape[2:], strict=True):  # same batch ndim by convention
-        size *= max(sa, sb)
+    if size is None:
+        size = rows * inner * cols
+        for sa, sb in zip(a.shape[2:], b.shape[2:], strict=True):  # same batch ndim
+            size *= max(sa, sb)
     # as (i, l, 1, *B) and (1, l, j, *B)
     a3 = a.unsqueeze(2) if a_dims == (0, 1) else a.transpose(0, 1).unsqueeze(2)
     b3 = b.unsqueeze(0) if b_dims == (0, 1) else b.transpose(0, 1).unsqueeze(0)
@@ -74,19 +83,19 @@ def _product(a: Tensor, b: Tensor, a_dims: tuple[int, int], b_dims: tuple[int, i
     return out
 
 
-def mm(a: Tensor, b: Tensor) -> Tensor:
+def mm(a: Tensor, b: Tensor, *, size: int | None = None) -> Tensor:
     """``a @ b``: ``(r, k, *B)``, ``(k, c, *B)`` → ``(r, c, *B)``."""
-    return _product(a, b, (0, 1), (0, 1))
+    return _product(a, b, (0, 1), (0, 1), size)
 
 
-def mm_t(a: Tensor, b: Tensor) -> Tensor:
+def mm_t(a: Tensor, b: Tensor, *, size: int | None = None) -> Tensor:
     """``a @ bᵀ``: ``(r, k, *B)``, ``(c, k, *B)`` → ``(r, c, *B)``."""
-    return _product(a, b, (0, 1), (1, 0))
+    return _product(a, b, (0, 1), (1, 0), size)
 
 
-def mtm(a: Tensor, b: Tensor) -> Tensor:
+def mtm(a: Tensor, b: Tensor, *, size: int | None = None) -> Tensor:
     """``aᵀ @ b``: ``(k, r, *B)``, ``(k, c, *B)`` → ``(r, c, *B)``."""
-    return _product(a, b, (1, 0), (0, 1))
+    return _product(a, b, (1, 0), (0, 1), size)
 
 
 def mv(a: Tensor, v: Tensor) -> Tensor:

@@ -13,7 +13,12 @@ from torch import Tensor
 from torchcontact.filters import _linalg as la
 from torchcontact.filters._checks import broadcast_batch, check_mask, check_tensor, describe
 from torchcontact.filters._gaussian import Gaussian, check_gaussian, unchecked_gaussian
-from torchcontact.filters._kalman import observed_components, predict_core, update_core
+from torchcontact.filters._kalman import (
+    observed_components,
+    predict_core,
+    update_core,
+    update_log_likelihood,
+)
 from torchcontact.filters._resampling import (
     RESAMPLING_METHODS,
     ResamplingMethod,
@@ -208,7 +213,9 @@ class RBPF:
       step, so low-prior modes survive whenever their weight is competitive: this is the
       proposal of choice when rare modes (contact onset) matter. With at most ``N``
       children of positive weight nothing is sampled and the filter is exact.
-      ``resampling`` and ``ess_threshold`` are not used.
+      ``resampling`` and ``ess_threshold`` are not used. The children's weights need their
+      predictive likelihoods only (of a measurement that reads part of the state, only that
+      part of their prediction): the full Kalman update runs on the ``N`` survivors.
 
     Initialization: :meth:`init` represents :math:`p(m_0)` exactly. ``bootstrap`` spreads
     the ``N >= K`` particles evenly over the modes (particle ``i`` has mode ``i mod K`` and
@@ -594,12 +601,10 @@ class RBPF:
         # update_core reads the lower triangle only, except that entries without a measurement
         # keep the predicted covariance as it is: symmetrize only then.
         mean, cov = predict_core(mean, cov, F, c, Q, symmetric=observed is not None)
-        extra_dims = mean.ndim - 1 - (y.ndim - 1)  # particle dims that y does not have
-        y_bl = la.to_batch_last(y.reshape(*y.shape[:-1], *(1,) * extra_dims, m), 1, mean.ndim - 1)
-        obs_bl = None
-        if observed is not None:
-            observed = observed.reshape(*observed.shape[:-1], *(1,) * extra_dims, m)
-            obs_bl = la.to_batch_last(observed, 1, mean.ndim - 1)
+        if observed is not None and not bool(observed.any()):
+            # No measurement at all: update_core would return the prediction and likelihood 0.
+            return mean, cov, mean.new_zeros(mean.shape[1:])
+        y_bl, obs_bl = _measurement(y, observed, mean.ndim - 1)
         return update_core(mean, cov, y_bl, H, d, R, obs_bl)
 
     def _step_bootstrap(
@@ -621,17 +626,10 @@ class RBPF:
             (*batch, N, 1), dtype=torch.float64, device=model.device, generator=generator
         )
         modes = search_cdf(cdf, draw).squeeze(-1)
-        if packed.ndim == 2:  # one set of dynamics for the whole batch: one index_select
-            params = packed.T.index_select(1, modes.reshape(-1)).reshape(-1, *batch, N)
-        else:
-            params = packed.expand(*batch, *packed.shape[-2:]).gather(
-                -2, modes.unsqueeze(-1).expand(*batch, N, packed.shape[-1])
-            )
-            params = params.movedim(-1, 0)
         mean, cov, log_lik = self._kalman(
             la.to_batch_last(belief.gaussians.mean, 1, nb + 1),
             la.to_batch_last(belief.gaussians.cov, 2, nb + 1),
-            params,
+            _select(packed, modes),
             shared,
             y,
             observed,
@@ -664,28 +662,15 @@ class RBPF:
         extra: Tensor | None,
         generator: torch.Generator | None,
     ) -> RBPFBelief:
-        model, N, K = self.model, self.num_particles, self.model.num_modes
+        N, K = self.num_particles, self.model.num_modes
         batch, nb = belief.batch_shape, len(belief.batch_shape)
-        # Children (particle i, mode k) flattened particle-major into one trailing dim N·K (a
-        # dense layout: elementwise kernels are much slower on mixed broadcast layouts).
-        if packed.ndim == 2:
-            child_modes = torch.arange(K, device=model.device).repeat(N)
-            params = packed.T.index_select(1, child_modes).reshape(-1, *(1,) * nb, N * K)
-        else:
-            params = packed.unsqueeze(-3).expand(*packed.shape[:-2], N, *packed.shape[-2:])
-            params = params.reshape(*packed.shape[:-2], N * K, -1).movedim(-1, 0)
-        mean = la.to_batch_last(belief.gaussians.mean, 1, nb + 1)
+        # The children (particle i, mode k), particle-major once flattened: their weights need
+        # their predictive likelihoods only, not their posteriors.
+        mean = la.to_batch_last(belief.gaussians.mean, 1, nb + 1)  # (n, *B, N)
         cov = la.to_batch_last(belief.gaussians.cov, 2, nb + 1)
-        mean, cov, log_lik = self._kalman(
-            mean.repeat_interleave(K, dim=-1),
-            cov.repeat_interleave(K, dim=-1),
-            params,
-            shared,
-            y,
-            observed,
-        )
+        log_lik = self._children_log_likelihood(mean, cov, packed, shared, y, observed)
         log_trans = torch.log(rows)  # (*B, N, K): log p(m_t = k | particle i)
-        log_w = belief.log_weights.unsqueeze(-1) + log_trans + log_lik.unflatten(-1, (N, K))
+        log_w = belief.log_weights.unsqueeze(-1) + log_trans + log_lik
         if extra is not None:
             log_w = log_w + extra.unsqueeze(-2)
         log_w, log_evidence, dead, any_dead = _normalize(log_w.flatten(-2), belief.log_evidence)
@@ -696,8 +681,70 @@ class RBPF:
             -2, parents.unsqueeze(-1).expand(*batch, N, self.max_lag + 1)
         )
         history = torch.cat([modes.unsqueeze(-1), history[..., :-1]], -1)
-        mean, cov = _gather_states(index, mean, cov)
+        # Only the N survivors need the Kalman update: the same operations on the same
+        # numbers (in the same memory layouts) as a step of all N·K children does for them.
+        mean, cov = _gather_states(parents, mean, cov)
+        mean, cov, _ = self._kalman(mean, cov, _select(packed, modes), shared, y, observed)
         return self._belief(belief, modes, log_w, mean, cov, log_evidence, history, dead, any_dead)
+
+    def _children_log_likelihood(
+        self,
+        mean: Tensor,
+        cov: Tensor,
+        packed: Tensor,
+        shared: dict[str, Tensor],
+        y: Tensor,
+        observed: Tensor | None,
+    ) -> Tensor:
+        """``(*B, N, K)`` predictive log-likelihoods of every particle's ``K`` children.
+
+        The log-likelihood of :meth:`_kalman` on every child without the posterior, from the
+        leading ``r`` components of the predicted mean and covariance: those that ``H`` reads
+        when every mode shares it (the pose of a
+        :class:`~torchcontact.filters.PlanarContactModel`), else all. The operations are
+        those of :meth:`_kalman` on the same numbers, so the values are the same (to the bit
+        when ``H`` selects components; see :func:`update_log_likelihood` for the exception).
+
+        Args:
+            mean: ``(n, *B, N)``; cov: ``(n, n, *B, N)``: the particles, batch-last.
+            packed: ``(K, D)`` or ``(*B', K, D)`` the modes' packed dynamics.
+            shared, y, observed: as in :meth:`_kalman`.
+        """
+        model = self.model
+        n, m, K = model.state_dim, model.obs_dim, model.num_modes
+        if observed is not None and not bool(observed.any()):
+            return mean.new_zeros(*mean.shape[1:], K)  # no measurement: likelihood 1
+        nb, lead = mean.ndim - 2, packed.ndim - 2
+        r = n
+        if "H" in shared:
+            read = shared["H"].detach().ne(0).any(0).nonzero()
+            r = int(read.max()) + 1 if read.numel() else 1
+        # The children span the trailing dims (K, N): the particles' numbers vary along the
+        # innermost N, the modes' dynamics are constant there (vectorized kernels), and
+        # neither is copied K or N times.
+        params = packed.movedim(-1, 0).reshape(
+            packed.shape[-1], *(1,) * (nb - lead), *packed.shape[:-2], K, 1
+        )  # (D, *B', K, 1)
+        F, c, Q, H, d, R = _unpack(params, shared, n, m)
+        # F x + c as a step of all children computes it, whose sums over x round as they do in
+        # its layouts: per-batch dynamics are gathered with the fields last (each row's
+        # products F_ij x_j summed over the innermost j), shared ones are contiguous.
+        if lead:
+            F_bf = packed[..., : r * n].unflatten(-1, (r, n)).unsqueeze(-3)  # (*B', K, 1, r, n)
+            x_bf = la.to_batch_first(mean, 1).contiguous()[..., None, :, None, :]  # (*B,1,N,1,n)
+            predicted = (F_bf * x_bf).sum(-1).movedim(-1, 0) + c[:r]  # (r, *B, K, N)
+        else:
+            predicted = la.mv(F[:r].contiguous(), mean.unsqueeze(-2)) + c[:r]
+        # The leading (r, r) block of predict_core's F P Fᵀ + Q, by the same operations.
+        cov = cov.unsqueeze(-2)  # (n, n, *B, 1, N)
+        size = n * n * n * math.prod(predicted.shape[1:])
+        block = la.mm_t(la.mm(F[:r], cov, size=size), F[:r], size=size)
+        block = la.add_(block, Q[:r, :r])
+        if observed is not None:
+            block = la.symmetrize(block)
+        y_bl, obs_bl = _measurement(y, observed, predicted.ndim - 1)
+        log_lik = update_log_likelihood(predicted, block, y_bl, H, d, R, obs_bl)
+        return log_lik.transpose(-1, -2)  # (*B, N, K)
 
     def _belief(
         self,
@@ -803,6 +850,32 @@ def _unpack(params: Tensor, shared: dict[str, Tensor], n: int, m: int) -> list[T
     ones = (1,) * len(batch)
     fields.update({name: value.reshape(*value.shape, *ones) for name, value in shared.items()})
     return [fields[name] for name in shapes]
+
+
+def _select(packed: Tensor, modes: Tensor) -> Tensor:
+    """Batch-last ``(D, *B, N)`` packed dynamics of the particles' ``modes (*B, N)``, from
+    ``packed (K, D)`` (one set for the whole batch: one index_select) or ``(*B', K, D)``."""
+    batch, N = modes.shape[:-1], modes.shape[-1]
+    if packed.ndim == 2:
+        return packed.T.index_select(1, modes.reshape(-1)).reshape(-1, *batch, N)
+    params = packed.expand(*batch, *packed.shape[-2:]).gather(
+        -2, modes.unsqueeze(-1).expand(*batch, N, packed.shape[-1])
+    )
+    return params.movedim(-1, 0)
+
+
+def _measurement(
+    y: Tensor, observed: Tensor | None, batch_ndim: int
+) -> tuple[Tensor, Tensor | None]:
+    """``y (*B', m)`` and ``observed`` batch-last with ``batch_ndim`` batch dims: the particle
+    dims that they lack are added as 1s on the right."""
+    m = y.shape[-1]
+    extra_dims = batch_ndim - (y.ndim - 1)  # particle dims that y does not have
+    y_bl = la.to_batch_last(y.reshape(*y.shape[:-1], *(1,) * extra_dims, m), 1, batch_ndim)
+    if observed is None:
+        return y_bl, None
+    observed = observed.reshape(*observed.shape[:-1], *(1,) * extra_dims, m)
+    return y_bl, la.to_batch_last(observed, 1, batch_ndim)
 
 
 def _normalize(log_w: Tensor, log_evidence: Tensor) -> tuple[Tensor, Tensor, Tensor, bool]:
