@@ -169,12 +169,14 @@ def _peg_in_hole(args: DemoArgs) -> list[str]:
     env = PegInHole2DVector(num_envs=args.peg_envs, config=config)
     agent = DynaQ(
         7,
-        alpha=0.3,
+        alpha=0.1,
         gamma=0.99,
         epsilon=0.1,
         planning_steps=10,
         seed=args.seed,
         exploration="least_tried",
+        step_size="visits",
+        planning_penalty=0.05,
     )
     shaping = PotentialShaping(5.0)
     rounds = []
@@ -197,7 +199,7 @@ def _peg_in_hole(args: DemoArgs) -> list[str]:
         f"## Peg-in-hole: learn, then execute under uncertainty "
         f"({time.perf_counter() - start:.0f} s)",
         "",
-        f"Dyna-Q (n = 10, value iteration between rounds, shaped reward): "
+        f"Dyna-Q (n = 10, pessimistic value iteration between rounds, shaped reward): "
         f"{args.peg_rounds * args.peg_envs} training episodes, "
         f"ε-greedy success per round {', '.join(f'{100 * x:.0f} %' for x in training)}; "
         f"{agent.num_states} manipulation states, "

@@ -47,7 +47,7 @@ from torchcontact.experiments import (
     results_table,
     run_round,
 )
-from torchcontact.rl import DynaQ, Exploration
+from torchcontact.rl import DynaQ, Exploration, StepSize
 from torchcontact.states import ManipulationGraph, ManipulationState
 
 
@@ -62,7 +62,16 @@ class Args:
     rounds: int = dataclasses.field(default=12, metadata={"help": "training rounds"})
     max_steps: int = dataclasses.field(default=200, metadata={"help": "steps per episode"})
     planning_steps: int = dataclasses.field(default=10, metadata={"help": "Dyna-Q planning n"})
-    alpha: float = dataclasses.field(default=0.3, metadata={"help": "Q-learning step size"})
+    alpha: float = dataclasses.field(
+        default=0.1, metadata={"help": "Q-learning step size (the floor with --step-size visits)"}
+    )
+    step_size: str = dataclasses.field(
+        default="visits", metadata={"help": "constant (alpha) or visits (max(alpha, 1/N(s, a)))"}
+    )
+    planning_penalty: float = dataclasses.field(
+        default=0.05,
+        metadata={"help": "pessimism of planning and sweeps: rewards less this / sqrt(N(s, a))"},
+    )
     gamma: float = dataclasses.field(default=0.99, metadata={"help": "discount factor"})
     epsilon: float = dataclasses.field(default=0.1, metadata={"help": "exploration rate"})
     exploration: str = dataclasses.field(
@@ -103,6 +112,12 @@ def _exploration(value: str) -> Exploration:
     return cast(Exploration, value)
 
 
+def _step_size(value: str) -> StepSize:
+    if value not in get_args(StepSize):
+        raise ValueError(f"step_size must be one of {get_args(StepSize)}, got {value!r}")
+    return cast(StepSize, value)
+
+
 def run(args: Args) -> dict[str, Any]:
     """Train, evaluate, write the artefacts; return the metrics."""
     torch.set_num_threads(1)
@@ -117,6 +132,8 @@ def run(args: Args) -> dict[str, Any]:
         planning_steps=args.planning_steps,
         seed=args.seed,
         exploration=_exploration(args.exploration),
+        step_size=_step_size(args.step_size),
+        planning_penalty=args.planning_penalty,
     )
     shaping = PotentialShaping(args.shaping)
     start, parts, history = 0, [], []
