@@ -64,12 +64,7 @@ def update_core(
     k, n = H.shape[0], H.shape[1]
     batch_ndim = mean.ndim - 1
     if observed is not None:
-        H = H * observed.unsqueeze(1)
-        y = torch.where(observed, y, 0.0)
-        if d is not None:
-            d = torch.where(observed, d, 0.0)
-        both = observed.unsqueeze(1) & observed.unsqueeze(0)
-        R = torch.where(both, R, la.eye(k, batch_ndim, R))
+        H, y, d, R = _mask_unobserved(H, y, d, R, observed, batch_ndim)
     residual = y - la.mv(H, mean)
     if d is not None:
         residual = residual - d
@@ -129,12 +124,7 @@ def update_log_likelihood(
     k, n, r = H.shape[0], H.shape[1], cov.shape[0]
     batch_ndim = mean.ndim - 1
     if observed is not None:
-        H = H * observed.unsqueeze(1)
-        y = torch.where(observed, y, 0.0)
-        if d is not None:
-            d = torch.where(observed, d, 0.0)
-        both = observed.unsqueeze(1) & observed.unsqueeze(0)
-        R = torch.where(both, R, la.eye(k, batch_ndim, R))
+        H, y, d, R = _mask_unobserved(H, y, d, R, observed, batch_ndim)
     residual = y - la.mv(H[:, :r], mean)
     if d is not None:
         residual = residual - d
@@ -298,3 +288,17 @@ def kf_update(
         la.to_batch_first(cov.expand(n, n, *batch), 2),
     )
     return posterior, log_lik.expand(batch)
+
+
+def _mask_unobserved(
+    H: Tensor, y: Tensor, d: Tensor | None, R: Tensor, observed: Tensor, batch_ndim: int
+) -> tuple[Tensor, Tensor, Tensor | None, Tensor]:
+    """Zero the rows of ``H``, ``y`` and ``d`` of unobserved components and replace their
+    block of ``R`` by the identity (see :func:`update_core`)."""
+    k = H.shape[0]
+    H = H * observed.unsqueeze(1)
+    y = torch.where(observed, y, 0.0)
+    if d is not None:
+        d = torch.where(observed, d, 0.0)
+    both = observed.unsqueeze(1) & observed.unsqueeze(0)
+    return H, y, d, torch.where(both, R, la.eye(k, batch_ndim, R))
