@@ -386,20 +386,20 @@ class DynaQ:
         s = self._register("state", state)
         s2 = self._register("next_state", next_state)
         self._graph.observe(self._graph_state(s), a, self._graph_state(s2), r)
-        self._record(s, a, s2, r)
+        pair = self._record(s, a, s2, r)
         if terminal:
             self._terminal[s2] = True
         q = self._q
         target = r if terminal else r + self._gamma * float(q[s2].max())
-        q[s, a] += self._pair_alpha(s, a) * (target - q[s, a])
+        q[s, a] += float(self._step_sizes(self._pair_totals[pair])) * (target - q[s, a])
         self._steps += 1
         self._plan()
 
-    def _pair_alpha(self, s: int, a: int) -> float:
-        """The step size of pair ``(s, a)`` (observed at least once)."""
+    def _step_sizes(self, totals: np.ndarray) -> np.ndarray:
+        """Step sizes of pairs observed ``totals`` (``N(s, a) >= 1``) times, same shape."""
         if self._step_size == "constant":
-            return self._alpha
-        return max(self._alpha, 1.0 / float(self._pair_totals[self._pair_ids[(s, a)]]))
+            return np.full(np.shape(totals), self._alpha)
+        return np.maximum(self._alpha, 1.0 / totals)
 
     def _check_hashable(self, name: str, state: object) -> Hashable:
         try:
@@ -441,8 +441,9 @@ class DynaQ:
         self._q[index] = self._initial_value
         return index
 
-    def _record(self, s: int, a: int, s2: int, r: float) -> None:
-        """Add ``(s, a, s′, r)`` to the sampling index (same arithmetic as the graph)."""
+    def _record(self, s: int, a: int, s2: int, r: float) -> int:
+        """Add ``(s, a, s′, r)`` to the sampling index (same arithmetic as the graph); return
+        the pair's index."""
         pair = self._pair_ids.get((s, a))
         if pair is None:
             pair = self._pair_ids[(s, a)] = len(self._edges)
@@ -456,8 +457,9 @@ class DynaQ:
             if edge[0] == s2:
                 edge[1] += 1
                 edge[2] += r
-                return
+                return pair
         self._edges[pair].append([s2, 1, r])
+        return pair
 
     def plan(self, num_updates: int | None = None) -> None:
         """Planning updates without a real transition (e.g. between episodes).
@@ -502,10 +504,7 @@ class DynaQ:
         if self._planning_penalty > 0:
             penalty = self._planning_penalty / np.sqrt(self._pair_totals[picks])
             rewards = (np.asarray(rewards) - penalty).tolist()
-        if self._step_size == "constant":
-            alphas = [self._alpha] * n
-        else:
-            alphas = np.maximum(self._alpha, 1.0 / self._pair_totals[picks]).tolist()
+        alphas = self._step_sizes(self._pair_totals[picks]).tolist()
         q, terminal, gamma = self._q, self._terminal, self._gamma
         for s, a, s2, r, alpha in zip(sources, actions, targets, rewards, alphas, strict=True):
             target = r if terminal[s2] else r + gamma * float(q[s2].max())
