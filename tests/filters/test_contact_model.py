@@ -286,10 +286,9 @@ def test_collect_modes_and_empirical_transition_match_counting() -> None:
     torch.testing.assert_close(P, counts_ij / counts_ij.sum(-1, keepdim=True))
 
 
-def test_tactile_likelihood_counts_the_triggered_sensors() -> None:
-    scene = _scene()
-    # Two sensors on the box: the middle of its left face and of its bottom face.
-    tactile = TactileArray(
+def _two_sensors() -> TactileArray:
+    """Two sensors on the box: the middle of its left face and of its bottom face."""
+    return TactileArray(
         positions=torch.tensor([[-WIDTH / 2, 0.0], [0.0, -HEIGHT / 2]], dtype=F64),
         normals=torch.tensor([[-1.0, 0.0], [0.0, -1.0]], dtype=F64),
         radius=torch.tensor([0.04, 0.11], dtype=F64),
@@ -297,6 +296,11 @@ def test_tactile_likelihood_counts_the_triggered_sensors() -> None:
         false_positive=0.1,
         false_negative=0.2,
     )
+
+
+def test_tactile_likelihood_counts_the_triggered_sensors() -> None:
+    scene = _scene()
+    tactile = _two_sensors()
     slots_finger = [s for s in range(scene.num_slots) if s >= 2]
     table = torch.zeros(3, scene.num_slots, dtype=torch.long)
     table[1, :2] = 1  # resting on the ground: only the bottom sensor
@@ -322,14 +326,7 @@ def test_tactile_likelihood_of_modes_that_share_their_slots() -> None:
     """Modes that activate the same slots (sticking or sliding either way) are evaluated
     once: every mode gets exactly what a model of that mode alone computes."""
     scene = _scene()
-    tactile = TactileArray(
-        positions=torch.tensor([[-WIDTH / 2, 0.0], [0.0, -HEIGHT / 2]], dtype=F64),
-        normals=torch.tensor([[-1.0, 0.0], [0.0, -1.0]], dtype=F64),
-        radius=torch.tensor([0.04, 0.11], dtype=F64),
-        half_angle=0.3,
-        false_positive=0.1,
-        false_negative=0.2,
-    )
+    tactile = _two_sensors()
     table = torch.zeros(5, scene.num_slots, dtype=torch.long)
     table[0, :2] = 1
     table[1, 2:] = 2
