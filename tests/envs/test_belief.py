@@ -16,6 +16,7 @@ from torchcontact.envs._belief import (
 )
 from torchcontact.experiments import PotentialShaping, QLookup, run_round
 from torchcontact.rl import DynaQ
+from torchcontact.states import ManipulationState
 
 CONFIG = PegInHoleConfig(max_steps=25)
 
@@ -125,13 +126,22 @@ def test_restart_replaces_exactly_the_entries_of_new_episodes(
     assert not torch.equal(fresh.gripper[0], belief.gripper[0])  # the restart changed something
 
 
+def _known_states(agent: DynaQ) -> list[ManipulationState]:
+    """States with Q values of their own: acted from, or terminal."""
+    return [
+        s  # type: ignore[misc]
+        for s in agent.states
+        if agent.is_terminal(s) or agent.action_counts(s).any()
+    ]
+
+
 def test_qmdp_over_particles_equals_a_loop_over_the_known_ones(
     fitted: tuple[PegInHoleBeliefModel, DynaQ, PegTransitions],
 ) -> None:
     model, agent, _ = fitted
-    lookup = QLookup(agent, model.task.states)
-    known = [model.task.states.index(s) for s in agent.states[:5]]
-    unknown = next(i for i in range(model.task.states.num_states) if i not in set(known))
+    lookup = QLookup(agent, model.task.states, nearest=False)
+    known = [model.task.states.index(s) for s in _known_states(agent)[:5]]
+    unknown = next(i for i in range(model.task.states.num_states) if not lookup.known[i])
     ids = torch.tensor([[known[0], known[1], unknown, known[0]], [unknown] * 4])
     weights = torch.tensor([[0.1, 0.2, 0.3, 0.4], [0.25] * 4], dtype=torch.float64)
     expected = torch.zeros(2, 7, dtype=torch.float64)
@@ -139,3 +149,29 @@ def test_qmdp_over_particles_equals_a_loop_over_the_known_ones(
         if i != unknown:
             expected[0] += w / 0.7 * agent.q_values(model.task.states.key(i))
     torch.testing.assert_close(lookup.qmdp(ids, weights), expected, rtol=1e-12, atol=1e-15)
+
+
+def test_unknown_states_borrow_the_nearest_known_row(
+    fitted: tuple[PegInHoleBeliefModel, DynaQ, PegTransitions],
+) -> None:
+    model, agent, _ = fitted
+    states = model.task.states
+    lookup = QLookup(agent, states)
+    known = _known_states(agent)
+    assert 0 < len(known) < agent.num_states  # some states were only reached, never left
+    classes = {s.contact for s in known}
+    generator = torch.Generator().manual_seed(3)
+    sample = torch.randint(0, states.num_states, (300,), generator=generator).tolist()
+    sample += [states.index(s) for s in agent.states]  # type: ignore[arg-type]
+    values, own = lookup.values(torch.tensor(sample))
+    for i, id_ in enumerate(sample):
+        key = states.key(id_)
+        if key in known:  # its own row
+            assert bool(own[i])
+            torch.testing.assert_close(values[i], agent.q_values(key), rtol=0, atol=0)
+            continue
+        assert not bool(own[i])
+        same = [s for s in known if s.contact == key.contact] if key.contact in classes else known
+        distance = [sum(abs(a - b) for a, b in zip(s.pose, key.pose, strict=True)) for s in same]
+        nearest = same[distance.index(min(distance))]  # known lists states in row order
+        torch.testing.assert_close(values[i], agent.q_values(nearest), rtol=0, atol=0)

@@ -104,6 +104,9 @@ def test_ids_are_vectorized_and_invert_through_keys() -> None:
         assert states.index(key) == int(ids[i])
         assert int(states.ids(poses[i], int(classes[i]))) == int(ids[i])  # one pose at a time
     assert int(ids.max()) < states.num_states == nx * ny * na * NUM_CONTACT_CLASSES
+    index, contact = states.unravel(ids.reshape(20, 20))
+    assert torch.equal(index.reshape(N, 3), states.cell_indices(poses))
+    assert torch.equal(contact.reshape(N), classes)
     # Particles of a filter: (batch, particles, 3) poses, no contacts -> a firm grasp.
     particles = poses.reshape(20, 20, 3)
     held = states.ids(particles)

@@ -235,6 +235,20 @@ class PegInHoleStates:
                 ) from error
         return cells * NUM_CONTACT_CLASSES + classes
 
+    def unravel(self, state_ids: Tensor) -> tuple[Tensor, Tensor]:
+        """Per-axis cell indices and contact classes of ids, vectorized (the inverse of
+        :meth:`ids`' layout).
+
+        Args:
+            state_ids: ``(*B,)`` long ids in ``[0, num_states)``.
+
+        Returns:
+            ``(*B, 3)`` long cell indices ``(i_x, i_y, i_θ)`` and ``(*B,)`` long class ids.
+        """
+        _, ny, na = self.shape
+        cell, contact = state_ids // NUM_CONTACT_CLASSES, state_ids % NUM_CONTACT_CLASSES
+        return torch.stack([cell // (ny * na), cell // na % ny, cell % na], dim=-1), contact
+
     def key(self, state_id: int) -> ManipulationState:
         """The hashable manipulation state of an id.
 

@@ -15,7 +15,6 @@ from torchcontact.experiments._peg_execution import (
     NUM_BELIEF_FEATURES,
     SETTINGS,
     Evaluation,
-    QLookup,
     Setting,
     belief_features,
     evaluate,
@@ -23,6 +22,7 @@ from torchcontact.experiments._peg_execution import (
     results_table,
 )
 from torchcontact.experiments._peg_learning import PotentialShaping, RoundResult, run_round
+from torchcontact.experiments._q_lookup import QLookup
 
 __all__ = [
     "NUM_BELIEF_FEATURES",

@@ -17,60 +17,16 @@ from torchcontact.envs import (
     NUM_CONTACT_CLASSES,
     PegInHole2DVector,
     PegInHoleConfig,
-    PegInHoleStates,
 )
 from torchcontact.envs._belief import PegBelief, PegInHoleFilter
-from torchcontact.rl import DynaQ, QNetwork
+from torchcontact.experiments._q_lookup import QLookup
+from torchcontact.rl import QNetwork
 
 #: The execution settings compared by :func:`evaluate`.
 Setting = Literal["oracle", "raw", "qmdp", "neural"]
 SETTINGS: tuple[str, ...] = get_args(Setting)
 #: Belief features after the state probabilities (see :func:`belief_features`).
 NUM_BELIEF_FEATURES = 8 + NUM_CONTACT_CLASSES
-
-
-class QLookup:
-    """The Q values of a :class:`DynaQ` agent indexed by manipulation-state id.
-
-    Args:
-        agent: an agent whose states are keys of ``states`` (``ManipulationState``).
-        states: the task's state discretization.
-    """
-
-    def __init__(self, agent: DynaQ, states: PegInHoleStates) -> None:
-        self.table = agent.q_table()  # (M, A) float64
-        self.row = torch.full((states.num_states,), -1, dtype=torch.long)
-        ids = torch.tensor([states.index(s) for s in agent.states], dtype=torch.long)  # type: ignore[arg-type]
-        self.row[ids] = torch.arange(len(agent.states))
-
-    @property
-    def num_rows(self) -> int:
-        """``M``, the states the agent knows."""
-        return int(self.table.shape[0])
-
-    def values(self, ids: Tensor) -> tuple[Tensor, Tensor]:
-        """Q values ``(*B, A)`` of state ids ``(*B,)`` (zero where unknown) and the known mask."""
-        row = self.row[ids]
-        known = row >= 0
-        return torch.where(known.unsqueeze(-1), self.table[row.clamp(min=0)], 0.0), known
-
-    def probabilities(self, ids: Tensor, weights: Tensor) -> Tensor:
-        """``(B, M)`` belief over the agent's states from particles ``ids, weights (B, N)``;
-        particles in unknown states are dropped and the rest renormalized (all zero if none
-        is known)."""
-        row = self.row[ids]
-        known = row >= 0
-        w = torch.where(known, weights, 0.0)
-        total = w.sum(-1, keepdim=True)
-        w = torch.where(total > 0, w / total.clamp(min=1e-300), 0.0)
-        out = torch.zeros(ids.shape[0], self.num_rows, dtype=weights.dtype)
-        return out.scatter_add_(1, row.clamp(min=0), w)
-
-    def qmdp(self, ids: Tensor, weights: Tensor) -> Tensor:
-        """``(B, A)`` QMDP values ``Σ_i w_i Q(m_i, ·)`` over the particles in known states
-        (renormalized; zero if none is known): :meth:`probabilities` times the table, which is
-        also the QMDP head of a :class:`~torchcontact.rl.QNetwork` made ``from_table``."""
-        return self.probabilities(ids, weights) @ self.table
 
 
 def belief_features(filt: PegInHoleFilter, belief: PegBelief, lookup: QLookup) -> Tensor:

@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 
 from torchcontact.envs import PegInHole2DVector, PegInHoleStates
 from torchcontact.envs._belief import PegTransitions
+from torchcontact.experiments._q_lookup import QLookup
 from torchcontact.rl import DynaQ
 
 
@@ -97,7 +98,8 @@ def run_round(
     :class:`~torchcontact.states.ManipulationState` key): ε-greedy and learning (each
     sub-environment's transitions in index order, shaped by ``shaping`` with the agent's
     discount factor) when ``learn``,
-    else greedy with random tie-breaking and no update.
+    else greedy with random tie-breaking and no update, where states the agent never acted
+    from borrow the nearest known state's values (:class:`QLookup`).
 
     Args:
         env: the vector environment (any observation mode; the true state comes from infos).
@@ -120,13 +122,15 @@ def run_round(
     td_errors: list[float] = []
     parts: list[PegTransitions] = []
     rng = np.random.default_rng(seed)
+    lookup = None if learn else QLookup(agent, env.states)
     while live.any():
         if learn:
             actions = np.array(
                 [agent.act(s) if on else 0 for s, on in zip(states, live, strict=True)]
             )
         else:
-            q = np.stack([agent.q_values(s).numpy() for s in states])
+            assert lookup is not None
+            q = lookup.values(torch.as_tensor(info["manipulation_state_id"]))[0].numpy()
             actions = np.argmax(q + 1e-9 * rng.random(q.shape), axis=1)
         _, reward, terminated, truncated, next_info = env.step(actions)
         next_states = [key(int(i)) for i in next_info["manipulation_state_id"]]
