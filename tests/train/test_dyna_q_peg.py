@@ -41,7 +41,16 @@ def test_runs_and_writes_its_artefacts(module: ModuleType, tmp_path: Path) -> No
     assert len(result["history"]) == 2
     assert "greedy_success" in result["history"][-1]
     assert list(run_dir.glob("events.out.tfevents.*"))
-    assert "| qmdp | 3 |" in (run_dir / "results.md").read_text()
+    text = (run_dir / "results.md").read_text()
+    assert "| qmdp | 3 |" in text
+    greedy = [f"{100 * h['greedy_success']:.1f} %" for h in result["history"]]
+    assert "| greedy success (true state) | " + " | ".join(greedy) + " |" in text
+
+
+def test_no_final_evaluation_with_zero_final_episodes(module: ModuleType, tmp_path: Path) -> None:
+    result = module.run(_tiny(module, tmp_path, rounds=1, final_episodes=0))
+    assert result["evaluations"] == {}
+    assert "No final evaluation." in (Path(result["run_dir"]) / "results.md").read_text()
 
 
 def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
