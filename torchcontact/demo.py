@@ -34,14 +34,13 @@ from torchcontact.envs import (
     PegTransitions,
 )
 from torchcontact.experiments import (
-    PotentialShaping,
+    PegLearning,
     QLookup,
     evaluate_settings,
     results_table,
     run_round,
 )
 from torchcontact.geometry import HalfPlane, Polygon
-from torchcontact.rl import DynaQ
 from torchcontact.sim import Body, Rollout, Scene, Simulator, contact_problem, draw_scene
 
 GRAVITY = 9.81
@@ -167,18 +166,9 @@ def _peg_in_hole(args: DemoArgs) -> list[str]:
     start = time.perf_counter()
     config = PegInHoleConfig(pose_noise_std=(0.002, 0.002, 0.02))
     env = PegInHole2DVector(num_envs=args.peg_envs, config=config)
-    agent = DynaQ(
-        7,
-        alpha=0.1,
-        gamma=0.99,
-        epsilon=0.1,
-        planning_steps=10,
-        seed=args.seed,
-        exploration="least_tried",
-        step_size="visits",
-        planning_penalty=0.05,
-    )
-    shaping = PotentialShaping(5.0)
+    learning = PegLearning()
+    agent = learning.agent(seed=args.seed)
+    shaping = learning.potential_shaping()
     rounds = []
     for r in range(args.peg_rounds):
         rounds.append(run_round(env, agent, seed=args.seed * 1_000_003 + r, shaping=shaping))

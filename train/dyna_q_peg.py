@@ -39,7 +39,7 @@ from torchcontact.envs import (
     PegTransitions,
 )
 from torchcontact.experiments import (
-    PotentialShaping,
+    PegLearning,
     QLookup,
     evaluate_settings,
     load_checkpoint,
@@ -47,8 +47,10 @@ from torchcontact.experiments import (
     results_table,
     run_round,
 )
-from torchcontact.rl import DynaQ, Exploration, StepSize
+from torchcontact.rl import Exploration, StepSize
 from torchcontact.states import ManipulationGraph, ManipulationState
+
+_LEARNING = PegLearning()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -61,28 +63,37 @@ class Args:
     num_envs: int = dataclasses.field(default=32, metadata={"help": "episodes per round"})
     rounds: int = dataclasses.field(default=12, metadata={"help": "training rounds"})
     max_steps: int = dataclasses.field(default=200, metadata={"help": "steps per episode"})
-    planning_steps: int = dataclasses.field(default=10, metadata={"help": "Dyna-Q planning n"})
+    planning_steps: int = dataclasses.field(
+        default=_LEARNING.planning_steps,
+        metadata={"help": "Dyna-Q planning n"},
+    )
     alpha: float = dataclasses.field(
-        default=0.1, metadata={"help": "Q-learning step size (the floor with --step-size visits)"}
+        default=_LEARNING.alpha,
+        metadata={"help": "Q-learning step size (the floor with --step-size visits)"},
     )
     step_size: str = dataclasses.field(
-        default="visits", metadata={"help": "constant (alpha) or visits (max(alpha, 1/N(s, a)))"}
+        default=_LEARNING.step_size,
+        metadata={"help": "constant (alpha) or visits (max(alpha, 1/N(s, a)))"},
     )
     planning_penalty: float = dataclasses.field(
-        default=0.05,
+        default=_LEARNING.planning_penalty,
         metadata={"help": "pessimism of planning and sweeps: rewards less this / sqrt(N(s, a))"},
     )
-    gamma: float = dataclasses.field(default=0.99, metadata={"help": "discount factor"})
-    epsilon: float = dataclasses.field(default=0.1, metadata={"help": "exploration rate"})
+    gamma: float = dataclasses.field(default=_LEARNING.gamma, metadata={"help": "discount factor"})
+    epsilon: float = dataclasses.field(
+        default=_LEARNING.epsilon,
+        metadata={"help": "exploration rate"},
+    )
     exploration: str = dataclasses.field(
-        default="least_tried", metadata={"help": "ε exploration: uniform or least_tried"}
+        default=_LEARNING.exploration, metadata={"help": "ε exploration: uniform or least_tried"}
     )
     sweep: bool = dataclasses.field(
         default=True,
         metadata={"help": "value iteration on the graph after each round (if planning_steps > 0)"},
     )
     shaping: float = dataclasses.field(
-        default=5.0, metadata={"help": "potential-based shaping scale, reward per metre"}
+        default=_LEARNING.shaping,
+        metadata={"help": "potential-based shaping scale, reward per metre"},
     )
     eval_every: int = dataclasses.field(default=2, metadata={"help": "rounds between evals"})
     eval_episodes: int = dataclasses.field(
@@ -125,18 +136,18 @@ def run(args: Args) -> dict[str, Any]:
     run_dir = Path(args.out_dir) / args.name
     run_dir.mkdir(parents=True, exist_ok=True)
     checkpoint_path = run_dir / "checkpoint.pt"
-    agent = DynaQ(
-        7,
+    learning = PegLearning(
         alpha=args.alpha,
+        step_size=_step_size(args.step_size),
+        planning_steps=args.planning_steps,
+        planning_penalty=args.planning_penalty,
         gamma=args.gamma,
         epsilon=args.epsilon,
-        planning_steps=args.planning_steps,
-        seed=args.seed,
         exploration=_exploration(args.exploration),
-        step_size=_step_size(args.step_size),
-        planning_penalty=args.planning_penalty,
+        shaping=args.shaping,
     )
-    shaping = PotentialShaping(args.shaping)
+    agent = learning.agent(seed=args.seed)
+    shaping = learning.potential_shaping()
     start, parts, history = 0, [], []
     saved = load_checkpoint(checkpoint_path, args) if args.resume else None
     if saved is not None:

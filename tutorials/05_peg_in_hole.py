@@ -46,7 +46,7 @@ from torchcontact.envs import (
     PegTransitions,
 )
 from torchcontact.experiments import (
-    PotentialShaping,
+    PegLearning,
     QLookup,
     evaluate_settings,
     results_table,
@@ -117,24 +117,14 @@ fig.savefig(OUT / "05_environment.png", dpi=80)
 # %%
 B = 4 if FAST else 32
 rounds = 2 if FAST else 16
-shaping = PotentialShaping(5.0)
+shaping = PegLearning().potential_shaping()
 env = PegInHole2DVector(num_envs=B, config=config)
 evaluation_env = PegInHole2DVector(num_envs=B, config=config)
 curves: dict[int, list[float]] = {}
 agents: dict[int, DynaQ] = {}
 recorded: list[PegTransitions] = []
 for n in (0, 10):
-    agent = DynaQ(
-        7,
-        alpha=0.1,
-        gamma=0.99,
-        epsilon=0.1,
-        planning_steps=n,
-        seed=0,
-        exploration="least_tried",
-        step_size="visits",
-        planning_penalty=0.05,
-    )
+    agent = PegLearning(planning_steps=n).agent(seed=0)
     curves[n] = []
     for r in range(rounds):
         result = run_round(env, agent, seed=1_000 * r, shaping=shaping)

@@ -2,11 +2,11 @@
 
 Peg-in-hole (:mod:`torchcontact.envs`): :func:`run_round` trains (or evaluates) a
 :class:`~torchcontact.rl.DynaQ` agent on rounds of batched episodes with
-:class:`PotentialShaping` and records the steps; :func:`evaluate` executes the learned policy
-under uncertainty (oracle, raw observation, QMDP over the RBPF belief, neural Q on
-:func:`belief_features`), with :class:`QLookup` mapping manipulation states to Q values.
-Scripts read their command line with :func:`parse_dataclass` and resume with
-:func:`load_checkpoint`.
+:class:`PotentialShaping` and records the steps (:class:`PegLearning` holds the settings
+that learn the task); :func:`evaluate` executes the learned policy under uncertainty (oracle,
+raw observation, QMDP over the RBPF belief, neural Q on :func:`belief_features`), with
+:class:`QLookup` mapping manipulation states to Q values. Scripts read their command line
+with :func:`parse_dataclass` and resume with :func:`load_checkpoint`.
 """
 
 from torchcontact.experiments._checkpoint import load_checkpoint
@@ -21,13 +21,19 @@ from torchcontact.experiments._peg_execution import (
     evaluate_settings,
     results_table,
 )
-from torchcontact.experiments._peg_learning import PotentialShaping, RoundResult, run_round
+from torchcontact.experiments._peg_learning import (
+    PegLearning,
+    PotentialShaping,
+    RoundResult,
+    run_round,
+)
 from torchcontact.experiments._q_lookup import QLookup
 
 __all__ = [
     "NUM_BELIEF_FEATURES",
     "SETTINGS",
     "Evaluation",
+    "PegLearning",
     "PotentialShaping",
     "QLookup",
     "RoundResult",

@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 from torchcontact.envs import PegInHole2DVector, PegInHoleStates
 from torchcontact.envs._belief import PegTransitions
 from torchcontact.experiments._q_lookup import QLookup
-from torchcontact.rl import DynaQ
+from torchcontact.rl import DynaQ, Exploration, StepSize
 
 
 @dataclass(frozen=True)
@@ -60,6 +60,54 @@ class PotentialShaping:
     ) -> NDArray[np.float64]:
         """``r + γ Φ(s′) − Φ(s)`` per entry ``(B,)``, with ``Φ(s′) = 0`` where ``terminated``."""
         return np.asarray(reward + np.where(terminated, 0.0, gamma * next_potential) - potential)
+
+
+@dataclass(frozen=True)
+class PegLearning:
+    """The Dyna-Q settings that learn the peg-in-hole task (the train script's defaults).
+
+    Chosen on the task (README, "Learning and execution"): step sizes
+    ``max(alpha, 1/N(s, a))``, pessimistic planning and sweeps (model rewards less
+    ``planning_penalty / √N(s, a)``), count-directed ε exploration and potential-based
+    shaping of ``shaping`` reward per metre.
+
+    Attributes:
+        alpha: Q-learning step size (the floor of the visit-count step size).
+        step_size: ``"visits"`` or ``"constant"``.
+        planning_steps: Dyna-Q planning updates per real step.
+        planning_penalty: pessimism of planning and sweeps.
+        gamma: discount factor.
+        epsilon: exploration rate.
+        exploration: ``"least_tried"`` or ``"uniform"``.
+        shaping: scale of :class:`PotentialShaping`.
+    """
+
+    alpha: float = 0.1
+    step_size: StepSize = "visits"
+    planning_steps: int = 10
+    planning_penalty: float = 0.05
+    gamma: float = 0.99
+    epsilon: float = 0.1
+    exploration: Exploration = "least_tried"
+    shaping: float = 5.0
+
+    def agent(self, *, seed: int, num_actions: int = 7) -> DynaQ:
+        """A fresh agent with these settings (arguments checked by :class:`DynaQ`)."""
+        return DynaQ(
+            num_actions,
+            alpha=self.alpha,
+            gamma=self.gamma,
+            epsilon=self.epsilon,
+            planning_steps=self.planning_steps,
+            seed=seed,
+            exploration=self.exploration,
+            step_size=self.step_size,
+            planning_penalty=self.planning_penalty,
+        )
+
+    def potential_shaping(self) -> PotentialShaping:
+        """The reward shaping of the learning updates."""
+        return PotentialShaping(self.shaping)
 
 
 @dataclass(frozen=True)
