@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from tests.train import load_script
+from torchcontact.experiments import PegLearning, PotentialShaping
 
 
 def _tiny(module: ModuleType, out: Path, **changes: object) -> object:
@@ -73,3 +74,15 @@ def test_help_lists_the_arguments(module: ModuleType, capsys: pytest.CaptureFixt
     text = capsys.readouterr().out
     assert "--planning-steps" in text
     assert "--no-resume" in text
+
+
+def test_defaults_are_the_shared_peg_learning_settings(module: ModuleType) -> None:
+    settings = PegLearning(alpha=0.2, planning_steps=3, planning_penalty=0.1, epsilon=0.3)
+    agent = settings.agent(seed=5)
+    for name in ("alpha", "planning_steps", "planning_penalty", "gamma", "epsilon"):
+        assert getattr(agent, name) == getattr(settings, name), name
+    assert (agent.step_size, agent.exploration, agent.seed) == ("visits", "least_tried", 5)
+    assert settings.potential_shaping() == PotentialShaping(5.0)
+    args = module.Args()
+    for field in dataclasses.fields(PegLearning):
+        assert getattr(args, field.name) == field.default, field.name
