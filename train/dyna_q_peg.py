@@ -51,6 +51,9 @@ from torchcontact.rl import Exploration, StepSize
 from torchcontact.states import ManipulationGraph, ManipulationState
 
 _LEARNING = PegLearning()
+#: Arguments used only after training: a finished run resumes with other values of these and
+#: only fits the belief model and evaluates again.
+_EVALUATION = ("final_episodes", "particles", "vision_sigma")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -149,7 +152,7 @@ def run(args: Args) -> dict[str, Any]:
     agent = learning.agent(seed=args.seed)
     shaping = learning.potential_shaping()
     start, parts, history = 0, [], []
-    saved = load_checkpoint(checkpoint_path, args) if args.resume else None
+    saved = load_checkpoint(checkpoint_path, args, free=_EVALUATION) if args.resume else None
     if saved is not None:
         agent.load_state_dict(saved["agent"])
         start, parts, history = saved["round"], [saved["transitions"]], saved["history"]

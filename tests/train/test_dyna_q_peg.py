@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from tests.train import load_script
-from torchcontact.experiments import PegLearning, PotentialShaping
+from torchcontact.experiments import PegLearning, PotentialShaping, load_checkpoint
 
 
 def _tiny(module: ModuleType, out: Path, **changes: object) -> object:
@@ -48,10 +48,24 @@ def test_runs_and_writes_its_artefacts(module: ModuleType, tmp_path: Path) -> No
     assert "| greedy success (true state) | " + " | ".join(greedy) + " |" in text
 
 
-def test_no_final_evaluation_with_zero_final_episodes(module: ModuleType, tmp_path: Path) -> None:
-    result = module.run(_tiny(module, tmp_path, rounds=1, final_episodes=0))
-    assert result["evaluations"] == {}
-    assert "No final evaluation." in (Path(result["run_dir"]) / "results.md").read_text()
+def test_a_finished_run_is_evaluated_again_without_training(
+    module: ModuleType, tmp_path: Path
+) -> None:
+    trained = module.run(_tiny(module, tmp_path, rounds=1, final_episodes=0))
+    assert trained["evaluations"] == {}
+    run_dir = Path(trained["run_dir"])
+    assert "No final evaluation." in (run_dir / "results.md").read_text()
+    q_table = torch.load(run_dir / "q_table.pt")
+    again = module.run(
+        _tiny(module, tmp_path, rounds=1, final_episodes=2, particles=30, vision_sigma=0.004)
+    )
+    assert set(again["evaluations"]) == {"oracle", "raw", "qmdp"}
+    assert again["history"] == trained["history"]
+    assert torch.equal(torch.load(run_dir / "q_table.pt"), q_table)
+    with pytest.raises(ValueError, match="other arguments"):  # a training argument
+        module.run(_tiny(module, tmp_path, rounds=1, final_episodes=0, epsilon=0.2))
+    with pytest.raises(ValueError, match="free names fields"):
+        load_checkpoint(run_dir / "checkpoint.pt", _tiny(module, tmp_path), free=("sigma",))
 
 
 def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
