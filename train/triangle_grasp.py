@@ -65,10 +65,6 @@ from torchcontact.filters import (
 from torchcontact.geometry import (
     HalfPlane,
     Polygon,
-    halfplane_slots,
-    polygon_slots,
-    transform_points,
-    wrench_row,
 )
 from torchcontact.sim import (
     UNSOLVED,
@@ -77,6 +73,7 @@ from torchcontact.sim import (
     Scene,
     Simulator,
     draw_scene,
+    penetration,
 )
 from torchcontact.states import TactileArray, object_contacts
 
@@ -446,10 +443,9 @@ def project_out_of_contact(
         )
     phi, Jn, penetrating = penetration(
         scene,
-        g.mean[..., :3].reshape(B * N, 3),
-        q_kinematic[:, None].expand(B, N, *q_kinematic.shape[1:]).reshape(B * N, -1, 3),
-    )
-    phi, Jn, penetrating = phi.view(B, N, -1), Jn.view(B, N, -1, 3), penetrating.view(B, N, -1)
+        q=g.mean[..., None, :3],
+        q_kinematic=q_kinematic[:, None].expand(B, N, *q_kinematic.shape[1:]),
+    )  # (B, N, K), (B, N, K, 3), (B, N, K)
     slots = penetrating.flatten(0, 1).any(0).nonzero().squeeze(-1)
     if slots.numel() == 0:
         return belief
@@ -462,89 +458,6 @@ def project_out_of_contact(
         g, g.mean.new_zeros(B, N, m), H=Hm, d=d, R=R, mask=penetrating[..., slots]
     )
     return dataclasses.replace(belief, gaussians=projected)
-
-
-def penetration(scene: Scene, q: Tensor, q_kinematic: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Which slots of ``P`` states of a scene with one dynamic body penetrate, their gaps and
-    normal rows.
-
-    Where a slot penetrates (a candidate with a negative gap), its gap and its row of ``Jn``
-    (the dynamic body's columns) are those of :func:`~torchcontact.sim.contact_problem` at
-    the state, to the bit: the same functions on the same numbers, less the parts of the
-    problem that the projection does not use. The vertices of a polygon against another
-    polygon are evaluated only for the states where one of them lies in the other's bounding
-    box, since a vertex can only penetrate a polygon from there; elsewhere (and at every slot
-    that does not penetrate) the gap and the row are zero.
-
-    Args:
-        scene: the scene (exactly one dynamic body).
-        q: ``(P, 3)`` poses of the dynamic body.
-        q_kinematic: ``(P, Nk, 3)`` poses of the kinematic bodies.
-
-    Returns:
-        ``phi (P, L)``, ``Jn (P, L, 3)`` and the bool ``(P, L)`` penetrating slots.
-    """
-    (tracked,) = scene.dynamic
-    P, L, dtype = q.shape[0], scene.num_slots, q.dtype
-    poses: dict[int, Tensor] = {}
-    vertices: dict[int, Tensor] = {}
-    for i, body in enumerate(scene.bodies):
-        if not isinstance(body.shape, Polygon):
-            continue
-        if i == tracked:
-            poses[i] = q
-        elif body.kind == "kinematic":
-            poses[i] = q_kinematic[:, scene.kinematic.index(i)]
-        else:
-            assert body.pose is not None
-            poses[i] = body.pose.to(q).expand(P, 3)
-        vertices[i] = transform_points(poses[i], body.shape.vertices.to(dtype))
-    # Bounding boxes (P, 2) of the polygons, widened by a rounding tolerance.
-    low = {i: v.amin(-2) - 1e-9 for i, v in vertices.items()}
-    high = {i: v.amax(-2) + 1e-9 for i, v in vertices.items()}
-    phi = q.new_zeros(P, L)
-    Jn = q.new_zeros(P, L, 3)
-    penetrating = torch.zeros(P, L, dtype=torch.bool, device=q.device)
-    zero_block = torch.zeros((), dtype=dtype)
-    for group in scene.slot_groups:
-        receiver, other = group.receiver, group.other
-        other_shape = scene.bodies[other].shape
-        rows: Tensor | None = None  # every state
-        if isinstance(other_shape, Polygon):
-            # A vertex inside the other polygon lies inside its bounding box.
-            point = vertices[receiver]  # (P, V, 2)
-            boxed = (point >= low[other][:, None]) & (point <= high[other][:, None])
-            near = boxed.all(-1).any(-1)
-            if not bool(near.all()):
-                rows = near.nonzero().squeeze(-1)
-                if rows.numel() == 0:
-                    continue
-
-        def pick(x: Tensor, rows: Tensor | None = rows) -> Tensor:
-            return x if rows is None else x[rows]
-
-        if isinstance(other_shape, HalfPlane):
-            geometry = halfplane_slots(vertices[receiver], other_shape, margin=scene.margin)
-        else:
-            geometry = polygon_slots(
-                pick(vertices[receiver]), pick(vertices[other]), margin=scene.margin
-            )
-        block = zero_block.expand(*geometry.normals.shape[:-1], 3)
-        for member, sign in ((receiver, 1.0), (other, -1.0)):
-            if member == tracked:
-                offset = geometry.points - pick(poses[member])[..., None, :2]
-                block = block + sign * wrench_row(geometry.normals, offset)
-        span = slice(group.start, group.start + group.count)
-        inside = geometry.active & (geometry.phi < 0)
-        if rows is None:
-            phi[:, span], Jn[:, span], penetrating[:, span] = geometry.phi, block, inside
-        else:
-            phi[rows, span], Jn[rows, span], penetrating[rows, span] = (
-                geometry.phi,
-                block,
-                inside,
-            )
-    return torch.where(penetrating, phi, 0.0), Jn * penetrating[..., None], penetrating
 
 
 def run_rbpf(

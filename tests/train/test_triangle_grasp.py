@@ -126,40 +126,6 @@ def test_projection_lifts_penetrating_particles_onto_the_table(module: ModuleTyp
         module.project_out_of_contact(belief, model.scene, fingers.to(F64).expand(2, 2, 3), 0.0)
 
 
-def test_penetration_is_the_contact_problems(module: ModuleType) -> None:
-    """The projection's penetrating slots, gaps and normal rows are those of contact_problem,
-    to the bit, also where the fingers are skipped (far from the triangle)."""
-    from torchcontact.geometry import Polygon
-    from torchcontact.sim import SceneState, contact_problem
-
-    scene = module.triangle_scene(0.5)
-    gen = torch.Generator().manual_seed(0)
-    P = 600
-    rest = -float(Polygon.triangle(module.SIDE, module.HEIGHT).vertices[:, 1].min())
-    noise = torch.rand(P, 3, generator=gen, dtype=F64) - 0.5
-    q = torch.stack([0.03 * noise[:, 0], rest + 0.004 * noise[:, 1], 0.2 * noise[:, 2]], -1)
-    gap = 0.02 + 0.05 * torch.rand(P, generator=gen, dtype=F64)  # fingers' |x|
-    q_kinematic = torch.zeros(P, 2, 3, dtype=F64)
-    q_kinematic[:, :, 0] = torch.stack([-gap, gap], -1)
-    q_kinematic[:, :, 1] = module.FINGER_Y
-    phi, Jn, penetrating = module.penetration(scene, q, q_kinematic)
-    state = SceneState(
-        q=q[:, None],
-        v=torch.zeros(P, 1, 3, dtype=F64),
-        q_kinematic=q_kinematic,
-        mode=torch.zeros(P, scene.num_slots, dtype=torch.long),
-    )
-    problem, geometry = contact_problem(scene, state)
-    expected = geometry.active & (geometry.phi < 0)
-    assert torch.equal(penetrating, expected)
-    table = torch.arange(scene.num_slots) < 3  # the triangle's vertices against the table
-    assert bool(penetrating[:, table].any())
-    assert bool(penetrating[:, ~table].any())
-    assert not bool(penetrating[:, ~table].any(-1).all())
-    assert torch.equal(phi[penetrating], geometry.phi[penetrating])
-    assert torch.equal(Jn[penetrating], problem.Jn[penetrating])
-
-
 def test_mode_labels_and_touch_codes(module: ModuleType) -> None:
     scene = module.triangle_scene(0.5)
     mode = torch.zeros(scene.num_slots, dtype=torch.long)

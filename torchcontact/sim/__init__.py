@@ -2,6 +2,7 @@
 
 from torchcontact.sim._assemble import body_poses, contact_problem
 from torchcontact.sim._examples import pushed_box_rollout, pushed_box_scene
+from torchcontact.sim._penetration import penetration
 from torchcontact.sim._plot import draw_scene
 from torchcontact.sim._scene import Body, BodyKind, Scene, SlotGroup
 from torchcontact.sim._simulator import (
@@ -31,6 +32,7 @@ __all__ = [
     "body_poses",
     "contact_problem",
     "draw_scene",
+    "penetration",
     "pushed_box_rollout",
     "pushed_box_scene",
 ]

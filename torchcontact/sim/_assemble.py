@@ -24,19 +24,36 @@ from torchcontact.sim._state import SceneState
 
 def body_poses(scene: Scene, state: SceneState) -> list[Tensor | None]:
     """World pose ``(*B, 3)`` of every body (``None`` for half-planes)."""
+    return poses_of(scene, q=state.q, q_kinematic=state.q_kinematic)
+
+
+def poses_of(scene: Scene, *, q: Tensor, q_kinematic: Tensor) -> list[Tensor | None]:
+    """:func:`body_poses` from the poses of the dynamic ``(*B, Nd, 3)`` and kinematic
+    ``(*B, Nk, 3)`` bodies alone."""
     poses: list[Tensor | None] = []
-    batch = state.batch_shape
+    batch = q.shape[:-2]
     for i, body in enumerate(scene.bodies):
         if body.kind == "dynamic":
-            poses.append(state.q[..., scene.dynamic.index(i), :])
+            poses.append(q[..., scene.dynamic.index(i), :])
         elif body.kind == "kinematic":
-            poses.append(state.q_kinematic[..., scene.kinematic.index(i), :])
+            poses.append(q_kinematic[..., scene.kinematic.index(i), :])
         elif isinstance(body.shape, Polygon):
             assert body.pose is not None
-            poses.append(body.pose.to(state.q).expand(*batch, 3))
+            poses.append(body.pose.to(q).expand(*batch, 3))
         else:
             poses.append(None)
     return poses
+
+
+def polygon_vertices(
+    scene: Scene, poses: list[Tensor | None], dtype: torch.dtype
+) -> dict[int, Tensor]:
+    """World vertices ``(*B, V, 2)`` of every posed polygon, by body index."""
+    return {
+        i: transform_points(pose, body.shape.vertices.to(dtype))
+        for i, (body, pose) in enumerate(zip(scene.bodies, poses, strict=True))
+        if isinstance(body.shape, Polygon) and pose is not None
+    }
 
 
 def contact_problem(
@@ -81,11 +98,7 @@ def contact_problem(
             twists.append(control[..., scene.kinematic.index(i), :])
         else:
             twists.append(torch.zeros(*batch, 3, dtype=dtype))
-    world_vertices = {
-        i: transform_points(pose, body.shape.vertices.to(dtype))
-        for i, (body, pose) in enumerate(zip(scene.bodies, poses, strict=True))
-        if isinstance(body.shape, Polygon) and pose is not None
-    }
+    world_vertices = polygon_vertices(scene, poses, dtype)
 
     geometries: list[SlotGeometry] = []
     Jn_parts, Jt_parts, bn_parts, bt_parts, mu_parts = [], [], [], [], []
