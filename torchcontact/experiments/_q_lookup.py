@@ -60,9 +60,8 @@ class QLookup:
         """Q values ``(*B, A)`` of state ids ``(*B,)`` (zero where neither known nor borrowed)
         and the mask ``(*B,)`` of states known in their own right."""
         row = self.row[ids]
-        return torch.where((row >= 0).unsqueeze(-1), self.table[row.clamp(min=0)], 0.0), (
-            self.known[ids]
-        )
+        values = torch.where((row >= 0).unsqueeze(-1), self.table[row.clamp(min=0)], 0.0)
+        return values, self.known[ids]
 
     def probabilities(self, ids: Tensor, weights: Tensor) -> Tensor:
         """``(B, M)`` belief over the agent's states from particles ``ids, weights (B, N)``;
