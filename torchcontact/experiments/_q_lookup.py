@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchcontact.envs import PegInHoleStates
+from torchcontact.envs import NUM_CONTACT_CLASSES, PegInHoleStates
 from torchcontact.rl import DynaQ
 
 
@@ -42,14 +42,27 @@ class QLookup:
             self._borrow_nearest(states, ids)
 
     def _borrow_nearest(self, states: PegInHoleStates, known_ids: Tensor) -> None:
-        far = sum(states.shape)  # more than any L1 distance between cells: the class comes first
+        cells = torch.arange(states.num_cells) * NUM_CONTACT_CLASSES
+        cell_index, _ = states.unravel(cells)  # (C, 3)
         known_index, known_contact = states.unravel(known_ids)
-        unknown = torch.nonzero(~self.known).squeeze(-1)
-        for chunk in unknown.split(4096):
-            index, contact = states.unravel(chunk)
-            distance = (index.unsqueeze(1) - known_index).abs().sum(-1)
-            distance = distance + far * (contact.unsqueeze(1) != known_contact)
-            self.row[chunk] = self.row[known_ids[distance.argmin(1)]]
+
+        def nearest_of(pool: Tensor) -> Tensor:
+            """Per cell, the nearest known id among ``pool``; the first minimum is the lowest
+            row."""
+            distance = (cell_index.unsqueeze(1) - known_index[pool]).abs().sum(-1)  # (C, K_c)
+            return known_ids[pool][distance.argmin(1)]
+
+        any_class: Tensor | None = None  # for classes never acted from
+        for contact in range(NUM_CONTACT_CLASSES):
+            pool = known_contact == contact
+            if bool(pool.any()):
+                nearest = nearest_of(pool)
+            else:
+                if any_class is None:
+                    any_class = nearest_of(torch.ones_like(pool))
+                nearest = any_class
+            ids = cells + contact
+            self.row[ids] = torch.where(self.known[ids], self.row[ids], self.row[nearest])
 
     @property
     def num_rows(self) -> int:
