@@ -110,6 +110,18 @@ class Args:
     vision_sigma: float = dataclasses.field(
         default=0.002, metadata={"help": "camera position noise std, m (angle: 10x, rad)"}
     )
+    x_edges: str = dataclasses.field(
+        default="",
+        metadata={"help": "grid cell edges along x, m, comma-separated (empty: the default)"},
+    )
+    y_edges: str = dataclasses.field(
+        default="",
+        metadata={"help": "grid cell edges along y, m, comma-separated (empty: the default)"},
+    )
+    angle_edges: str = dataclasses.field(
+        default="",
+        metadata={"help": "grid cell edges of the angle, rad, comma-separated (empty: default)"},
+    )
     resume: bool = dataclasses.field(
         default=True, metadata={"help": "continue from the run folder's checkpoint"}
     )
@@ -118,7 +130,15 @@ class Args:
 def _config(args: Args, noisy: bool) -> PegInHoleConfig:
     sigma = args.vision_sigma
     noise = (sigma, sigma, 10 * sigma) if noisy else PegInHoleConfig().pose_noise_std
-    return PegInHoleConfig(max_steps=args.max_steps, pose_noise_std=noise)
+    grid: dict[str, tuple[float, ...]] = {}
+    for name in ("x_edges", "y_edges", "angle_edges"):
+        text = getattr(args, name).strip()
+        if text:
+            try:
+                grid[name] = tuple(float(value) for value in text.split(","))
+            except ValueError:
+                raise ValueError(f"{name} must be comma-separated numbers, got {text!r}") from None
+    return PegInHoleConfig(max_steps=args.max_steps, pose_noise_std=noise, **grid)
 
 
 def _exploration(value: str) -> Exploration:

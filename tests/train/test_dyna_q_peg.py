@@ -100,3 +100,15 @@ def test_defaults_are_the_shared_peg_learning_settings(module: ModuleType) -> No
     args = module.Args()
     for field in dataclasses.fields(PegLearning):
         assert getattr(args, field.name) == field.default, field.name
+
+
+def test_grid_edges_from_the_command_line(module: ModuleType) -> None:
+    args = module.Args(y_edges="-0.01, 0, 0.01,0.03", angle_edges="-0.1,0.1")
+    config = module._config(args, noisy=False)
+    assert config.y_edges == (-0.01, 0.0, 0.01, 0.03)
+    assert config.angle_edges == (-0.1, 0.1)
+    assert config.x_edges == module.PegInHoleConfig().x_edges  # empty: the default
+    with pytest.raises(ValueError, match="y_edges must be comma-separated numbers"):
+        module._config(module.Args(y_edges="0,a"), noisy=False)
+    with pytest.raises(ValueError, match="x_edges"):
+        module._config(module.Args(x_edges="0.02,0.01"), noisy=False)
