@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -13,6 +14,7 @@ from torchcontact.envs import PegInHole2DVector, PegInHoleStates
 from torchcontact.envs._belief import PegTransitions
 from torchcontact.experiments._q_lookup import QLookup
 from torchcontact.rl import DynaQ, Exploration, StepSize
+from torchcontact.states import ManipulationState
 
 
 @dataclass(frozen=True)
@@ -159,8 +161,13 @@ def run_round(
     B = env.num_envs
     depth = env.config.insertion_depth
     key = env.states.key
+
+    def keys(info: dict[str, Any]) -> list[ManipulationState]:
+        """The agent's state keys (only learning needs them; greedy reads the lookup)."""
+        return [key(int(i)) for i in info["manipulation_state_id"]] if learn else []
+
     _, info = env.reset(seed=seed)
-    states = [key(int(i)) for i in info["manipulation_state_id"]]
+    states = keys(info)
     potential = shaping.potential(env.states, info["peg_pose"], depth)
     live = np.ones(B, dtype=bool)
     first = np.ones(B, dtype=bool)
@@ -181,7 +188,7 @@ def run_round(
             q = lookup.values(torch.as_tensor(info["manipulation_state_id"]))[0].numpy()
             actions = np.argmax(q + 1e-9 * rng.random(q.shape), axis=1)
         _, reward, terminated, truncated, next_info = env.step(actions)
-        next_states = [key(int(i)) for i in next_info["manipulation_state_id"]]
+        next_states = keys(next_info)
         next_potential = shaping.potential(env.states, next_info["peg_pose"], depth)
         shaped = shaping.shaped(
             reward,
