@@ -19,7 +19,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
-from typing import Any, cast, get_args
+from typing import Any, cast
 
 import matplotlib
 
@@ -141,18 +141,6 @@ def _config(args: Args, noisy: bool) -> PegInHoleConfig:
     return PegInHoleConfig(max_steps=args.max_steps, pose_noise_std=noise, **grid)
 
 
-def _exploration(value: str) -> Exploration:
-    if value not in get_args(Exploration):
-        raise ValueError(f"exploration must be one of {get_args(Exploration)}, got {value!r}")
-    return cast(Exploration, value)
-
-
-def _step_size(value: str) -> StepSize:
-    if value not in get_args(StepSize):
-        raise ValueError(f"step_size must be one of {get_args(StepSize)}, got {value!r}")
-    return cast(StepSize, value)
-
-
 def run(args: Args) -> dict[str, Any]:
     """Train, evaluate, write the artefacts; return the metrics."""
     torch.set_num_threads(1)
@@ -161,12 +149,12 @@ def run(args: Args) -> dict[str, Any]:
     checkpoint_path = run_dir / "checkpoint.pt"
     learning = PegLearning(
         alpha=args.alpha,
-        step_size=_step_size(args.step_size),
+        step_size=cast(StepSize, args.step_size),  # checked by DynaQ
         planning_steps=args.planning_steps,
         planning_penalty=args.planning_penalty,
         gamma=args.gamma,
         epsilon=args.epsilon,
-        exploration=_exploration(args.exploration),
+        exploration=cast(Exploration, args.exploration),  # checked by DynaQ
         shaping=args.shaping,
     )
     agent = learning.agent(seed=args.seed)

@@ -112,3 +112,10 @@ def test_grid_edges_from_the_command_line(module: ModuleType) -> None:
         module._config(module.Args(y_edges="0,a"), noisy=False)
     with pytest.raises(ValueError, match="x_edges"):
         module._config(module.Args(x_edges="0.02,0.01"), noisy=False)
+
+
+def test_bad_choices_name_the_argument(module: ModuleType, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="exploration must be 'uniform' or 'least_tried'"):
+        module.run(_tiny(module, tmp_path, exploration="greedy"))
+    with pytest.raises(ValueError, match="step_size must be 'constant' or 'visits'"):
+        module.run(_tiny(module, tmp_path, step_size="decay"))
