@@ -223,16 +223,14 @@ def run(args: Args) -> dict[str, Any]:
     noisy = _config(args, noisy=True)
     task = PegInHoleTask(noisy)
     model = PegInHoleBeliefModel.fit(data, agent.graph, task=task)
-    filt = PegInHoleFilter(model, num_particles=args.particles)
-    lookup = QLookup(agent, task.states)
     evaluations = (
         evaluate_settings(
             ("oracle", "raw", "qmdp"),
             num_episodes=args.final_episodes,
             config=noisy,
-            lookup=lookup,
+            lookup=QLookup(agent, task.states),
             seed=args.seed + 7919,
-            filt=filt,
+            filt=PegInHoleFilter(model, num_particles=args.particles),
         )
         if args.final_episodes > 0
         else []
