@@ -171,12 +171,46 @@ def _dense_lower(low: list[list[Tensor]]) -> Tensor:
 def psd_cholesky(a: Tensor) -> Tensor:
     """Lower factor ``L`` with ``L Lᵀ = A`` of symmetric positive **semi**-definite matrices.
 
-    The plain factorization is tried first; if any matrix of the batch has a non-positive
-    pivot, the batch is refactored with non-positive pivots clamped to zero and the rest of
-    their column zeroed: exact for singular PSD matrices, a PSD projection of rounding noise
-    below zero otherwise (never a NaN; gradients stay finite). Only the lower triangle is
-    read. Elementwise kernels only (LAPACK's batched Cholesky has no semi-definite mode, and
-    a per-matrix cost).
+    The plain factorization (:func:`cholesky_attempt`) is tried first; if any matrix of the
+    batch has a non-positive pivot, the batch is refactored by :func:`semidefinite_cholesky`.
+    Only the lower triangle is read.
+
+    Args:
+        a: ``(n, n, *B)``.
+
+    Returns:
+        ``(n, n, *B)`` lower-triangular factor.
+    """
+    low = cholesky_attempt(a)
+    if a.shape[0] > _UNROLL_MAX or bool(torch.isfinite(low).all()):
+        return low
+    return semidefinite_cholesky(a)
+
+
+def cholesky_attempt(a: Tensor) -> Tensor:
+    """The first half of :func:`psd_cholesky`, without its test: the plain factor, non-finite
+    where a matrix has a non-positive pivot (matrices up to ``_UNROLL_MAX``; larger ones get
+    :func:`semidefinite_cholesky`). No host synchronization, so :func:`torch.compile` fuses it
+    with what comes before.
+
+    Args:
+        a: ``(n, n, *B)``.
+
+    Returns:
+        ``(n, n, *B)`` lower-triangular factor.
+    """
+    if a.shape[0] <= _UNROLL_MAX:
+        return _dense_lower(_unrolled_cholesky(a, semidefinite=False))
+    return semidefinite_cholesky(a)
+
+
+def semidefinite_cholesky(a: Tensor) -> Tensor:
+    """The factor of positive semi-definite matrices with non-positive pivots clamped to zero.
+
+    The rest of a clamped pivot's column is zeroed: exact for singular PSD matrices, a PSD
+    projection of rounding noise below zero otherwise (never a NaN; gradients stay finite).
+    Only the lower triangle is read. Elementwise kernels only (LAPACK's batched Cholesky has
+    no semi-definite mode, and a per-matrix cost).
 
     Args:
         a: ``(n, n, *B)``.
@@ -186,9 +220,6 @@ def psd_cholesky(a: Tensor) -> Tensor:
     """
     n = a.shape[0]
     if n <= _UNROLL_MAX:
-        low = _dense_lower(_unrolled_cholesky(a, semidefinite=False))
-        if bool(torch.isfinite(low).all()):
-            return low
         return _dense_lower(_unrolled_cholesky(a, semidefinite=True))
     # Column-oriented variant for larger matrices: n vectorized iterations instead of n³/6.
     lower = torch.ones(n, n, dtype=a.dtype, device=a.device).tril()

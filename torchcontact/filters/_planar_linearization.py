@@ -22,7 +22,8 @@ about 215 per call (and 115 views), whatever the batch, 17 of them LAPACK calls:
   slots, as ``solve_mode`` on one mode: it leaves the step unchanged where the mode's system
   is solvable, and decides the regularised answer where it is not;
 * ``is_consistent``'s tests on every slot, knowing which carry impulses;
-* one host synchronisation (the size of the systems) and no validation: the model checks its
+* one host synchronisation (the size of the systems; none with ``static_width``, which sizes
+  them by the mode table, for :func:`torch.compile`) and no validation: the model checks its
   inputs at its public methods.
 
 Every number is computed by the same operations, in the same order, as in the previous
@@ -412,6 +413,7 @@ def linearize_modes(
     fd_step: float,
     consistency_gap: float,
     consistency_tolerance: float,
+    static_width: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Every mode's step linearized at ``x`` by central differences, and its consistency.
 
@@ -427,6 +429,11 @@ def linearize_modes(
             would turn its impulse around) does not count against the mode, while a contact
             held across a wider gap (a box "stuck" to a finger it has left) does.
         consistency_tolerance: relative tolerance of the check.
+        static_width: lay every system out over ``W_max`` slots (the most any mode of the
+            table activates) instead of the most the modes activate among this call's
+            candidates: the same results (the extra rows are the identity, decoupled), larger
+            systems, but shapes that do not depend on the data (no host synchronisation), as
+            :func:`torch.compile` wants them.
 
     Returns:
         ``F (B, K, 6, 6)``, ``c (B, K, 6)`` and ``(B, K)`` bool: the mode is consistent.
@@ -444,7 +451,7 @@ def linearize_modes(
     # Each mode's slots: those it activates among the candidates, in slot order, then others.
     slots = table.slots.expand(B, K, -1)
     acting = candidate.gather(-1, slots.flatten(1)).view_as(slots) & table.activates
-    W = max(1, int(acting.sum(-1).max()))
+    W = table.slots.shape[-1] if static_width else max(1, int(acting.sum(-1).max()))
     order = torch.argsort(acting.to(torch.uint8), dim=-1, descending=True, stable=True)[..., :W]
     keep = slots.gather(-1, order)  # (B, K, W)
     acting = acting.gather(-1, order)

@@ -1,0 +1,151 @@
+"""``compiled=True``: the filters' kernels through ``torch.compile`` against the eager kernels
+they compile (the same functions), and the fixed system width that compiling needs against
+the data-dependent one."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+import torch
+
+from tests.filters.test_contact_model import (
+    HEIGHT,
+    _linearization_cases,
+    _noise,
+    _pushed_box,
+)
+from tests.filters.test_rbpf import _problem, _run
+from torchcontact.filters import (
+    RBPF,
+    Gaussian,
+    KinematicControl,
+    LinearSwitchingModel,
+    PlanarContactModel,
+    RBPFBelief,
+    collect_modes,
+    empirical_transition,
+)
+from torchcontact.filters._planar_linearization import linearize_modes
+
+F64 = torch.float64
+
+
+def _linearize(
+    model: PlanarContactModel, x: torch.Tensor, control: KinematicControl, *, static: bool
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    q_kin, v_kin = model._control(control, x.shape[:-1], F64)
+    return linearize_modes(
+        model._layout,
+        model._mode_table,
+        x,
+        q_kin,
+        v_kin,
+        fd_step=model.fd_step,
+        consistency_gap=model.consistency_gap,
+        consistency_tolerance=model.consistency_tolerance,
+        static_width=static,
+    )
+
+
+def _assert_beliefs_close(a: RBPFBelief, b: RBPFBelief, *, rtol: float, atol: float) -> None:
+    assert torch.equal(a.modes, b.modes)
+    for x, y in (
+        (a.log_weights, b.log_weights),
+        (a.gaussians.mean, b.gaussians.mean),
+        (a.gaussians.cov, b.gaussians.cov),
+        (a.log_evidence, b.log_evidence),
+    ):
+        torch.testing.assert_close(x, y, rtol=rtol, atol=atol)
+
+
+def test_static_width_gives_the_same_linearization() -> None:
+    for model, x, control in _linearization_cases():
+        dynamic = _linearize(model, x, control, static=False)
+        static = _linearize(model, x, control, static=True)
+        # The extra rows are the identity, decoupled: equal to rounding (LAPACK's recursive LU
+        # splits a larger matrix elsewhere), except where a mode's equalities contradict each
+        # other and solve_mode's regularised answer amplifies round-off (see the linearization
+        # test: up to 3e-3 of the largest entry there).
+        scale = dynamic[0].abs().amax(dim=(-2, -1), keepdim=True).clamp_min(1.0)
+        close = ((static[0] - dynamic[0]).abs() <= 1e-9 * scale).all(dim=(-2, -1))
+        assert bool(close.float().mean() > 0.8)
+        assert bool(((static[0] - dynamic[0]).abs() <= 3e-3 * scale).all())
+        assert torch.equal(static[2], dynamic[2])
+
+
+@pytest.mark.parametrize("proposal", ["bootstrap", "all_modes"])
+def test_compiled_rbpf_equals_eager(proposal: str) -> None:
+    # Extra evidence ruling a mode out and a missed measurement: every branch of the step.
+    problem = _problem(extra=True)
+    eager = _run(RBPF(problem.model(), 24, proposal=proposal), problem, seed=3)
+    compiled = _run(RBPF(problem.model(), 24, proposal=proposal, compiled=True), problem, seed=3)
+    _assert_beliefs_close(eager, compiled, rtol=1e-10, atol=1e-12)
+
+
+def test_compiled_rbpf_refactors_semidefinite_covariances() -> None:
+    # A state component without noise and a prior that knows the state exactly: predicted
+    # covariances are singular, the plain factor fails and the semi-definite one takes over.
+    model = _problem().model()
+    Q = model.Q.clone()
+    Q[:, 1, 1] = 0.0
+    model = LinearSwitchingModel(**{**model.__dict__, "Q": Q})
+    prior = Gaussian(torch.zeros(2, dtype=F64), torch.zeros(2, 2, dtype=F64))
+    ys = torch.tensor([[0.3], [0.1], [-0.2]], dtype=F64)
+    beliefs = []
+    for compiled in (False, True):
+        rbpf = RBPF(model, 12, compiled=compiled)
+        gen = torch.Generator().manual_seed(0)
+        belief = rbpf.init(prior)
+        for y in ys:
+            belief = rbpf.step(belief, y, generator=gen)
+        beliefs.append(belief)
+    assert bool(torch.isfinite(beliefs[1].gaussians.cov).all())
+    _assert_beliefs_close(*beliefs, rtol=1e-10, atol=1e-12)
+
+
+def test_compiled_contact_model_equals_eager() -> None:
+    model, x, control = _linearization_cases()[0]
+    compiled = replace(model, compiled=True)
+    F, c = model.linearize(x, control=control)
+    F_c, c_c = compiled.linearize(x, control=control)
+    scale = F.abs().amax(dim=(-2, -1), keepdim=True).clamp_min(1.0)
+    assert bool(((F_c - F).abs() <= 3e-3 * scale).all())
+    assert float(((F_c - F).abs() <= 1e-9 * scale).all(dim=(-2, -1)).float().mean()) > 0.8
+    # Both are exact at the point: F x + c is the step there.
+    at_point = (F @ x[:, None, :, None]).squeeze(-1) + c
+    torch.testing.assert_close(
+        (F_c @ x[:, None, :, None]).squeeze(-1) + c_c, at_point, atol=1e-6, rtol=0
+    )
+
+    # A few filter steps on a pushed box, both kernels compiled.
+    steps = 6
+    scene, train, _ = _pushed_box(8, 30, seed=0)
+    table, ids, _ = collect_modes(train.mode)
+    K = len(table)
+    fields = {**_noise(K), "transition": empirical_transition(ids.T, K, smoothing=0.1)}
+    eager_model = PlanarContactModel(scene=scene, modes=table, **fields)
+    _, truth, controls = _pushed_box(1, steps, seed=1)
+    prior = Gaussian(
+        torch.tensor([[0.01, HEIGHT / 2, 0.0, 0.0, 0.0, 0.0]], dtype=F64),
+        torch.diag(torch.tensor([1e-4, 1e-6, 1e-4, 1e-2, 1e-2, 1e-2], dtype=F64))[None],
+    )
+    beliefs = []
+    for compiled_run in (False, True):
+        rbpf = RBPF(replace(eager_model, compiled=compiled_run), 32, compiled=compiled_run)
+        gen = torch.Generator().manual_seed(5)
+        belief = rbpf.init(prior)
+        for t in range(steps):
+            u = KinematicControl(q=truth.q_kinematic[t], v=controls[t])
+            belief = rbpf.step(belief, truth.q[t + 1, :, 0], control=u, generator=gen)
+        beliefs.append(belief)
+    _assert_beliefs_close(*beliefs, rtol=1e-7, atol=1e-9)
+
+
+def test_compiled_must_be_a_bool() -> None:
+    model = _problem().model()
+    with pytest.raises(ValueError, match="compiled"):
+        RBPF(model, 8, compiled=1)  # type: ignore[arg-type]
+    box, _, _ = _linearization_cases()[0]
+    with pytest.raises(ValueError, match="compiled"):
+        replace(box, compiled="yes")

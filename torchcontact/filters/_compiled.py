@@ -1,0 +1,41 @@
+"""Opt-in :func:`torch.compile` of the filters' per-step kernels (``compiled=True``).
+
+A step of the :class:`~torchcontact.filters.RBPF` on a contact model is about two thousand
+small tensor operations: the unrolled 6 × 6 Kalman algebra of ``_linalg`` over the particles,
+and the linearization of every contact mode at the belief's mean. On a CPU their cost is the
+dispatch of each operation (microseconds), not the arithmetic. TorchInductor fuses the
+elementwise chains into a few generated C++ loops, which removes most of that cost; the
+batched LAPACK calls of the linearization stay library calls.
+
+What it costs:
+
+* the first call of a kernel compiles it: tens of seconds on a CPU (a C++ compiler must be on
+  the machine); TorchInductor caches the generated code on disk, so another process with the
+  same shapes takes seconds;
+* a call with new shapes (particles, batch, dtype) or a new grad mode compiles again, the
+  second time with dynamic sizes (``torch.compile(dynamic=None)``), which later sizes reuse;
+* the results equal the eager kernels' to rounding, not to the bit (fused loops sum in
+  another order): about 1e-6 relative in float32, 1e-14 in float64.
+
+Each kernel is compiled once per process and shared by every filter and model that asks.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any, TypeVar, cast
+
+import torch
+
+_Kernel = TypeVar("_Kernel", bound=Callable[..., Any])
+
+
+@functools.cache
+def _compile(fn: Callable[..., Any]) -> Callable[..., Any]:
+    return torch.compile(fn, dynamic=None)
+
+
+def kernel(fn: _Kernel, *, compiled: bool) -> _Kernel:
+    """``fn`` itself, or its compiled form if ``compiled`` (one per process)."""
+    return cast(_Kernel, _compile(fn)) if compiled else fn
