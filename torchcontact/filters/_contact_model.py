@@ -345,7 +345,7 @@ class PlanarContactModel:
                 fd_step=self.fd_step,
                 consistency_gap=self.consistency_gap,
                 consistency_tolerance=self.consistency_tolerance,
-                static_width=self.compiled,
+                for_compile=self.compiled,
             )
         K = self.num_modes
         return (

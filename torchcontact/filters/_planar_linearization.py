@@ -22,9 +22,13 @@ about 215 per call (and 115 views), whatever the batch, 17 of them LAPACK calls:
   slots, as ``solve_mode`` on one mode: it leaves the step unchanged where the mode's system
   is solvable, and decides the regularised answer where it is not;
 * ``is_consistent``'s tests on every slot, knowing which carry impulses;
-* one host synchronisation (the size of the systems; none with ``static_width``, which sizes
-  them by the mode table, for :func:`torch.compile`) and no validation: the model checks its
+* one host synchronisation (the size of the systems) and no validation: the model checks its
   inputs at its public methods.
+
+With ``for_compile`` (the model's ``compiled=True``) the systems are sized by the mode table
+instead (no host synchronisation: shapes that do not depend on the data) and each Tikhonov
+pass inverts its matrices once and iterates with products, which :func:`torch.compile` fuses,
+instead of one batched LU solve per iteration (each a LAPACK call with a per-matrix cost).
 
 Every number is computed by the same operations, in the same order, as in the previous
 implementation (which used about 260 operations): the results are the same to the bit.
@@ -32,6 +36,7 @@ implementation (which used about 260 operations): the results are the same to th
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -377,7 +382,14 @@ def slot_rows(
 
 
 def _tikhonov(
-    system: Tensor, diagonal: Tensor, b: Tensor, shift: Tensor, eye: Tensor, refinements: int
+    system: Tensor,
+    diagonal: Tensor,
+    b: Tensor,
+    shift: Tensor,
+    eye: Tensor,
+    refinements: int,
+    *,
+    inverse: bool,
 ) -> Tensor:
     """``solve_mode``'s iterated Tikhonov solve of ``A x = b``.
 
@@ -392,14 +404,22 @@ def _tikhonov(
         shift: ``(*B, m, 1)`` or ``(*B, 1, 1)`` the diagonal of ``S``.
         eye: ``(m, m)`` identity.
         refinements: number of iterations.
+        inverse: iterate with the explicit inverse of ``A + S`` (one LAPACK call, then
+            products) instead of LU solves (one LAPACK call per iteration); the same iterates
+            to rounding.
 
     Returns:
         ``(*B, m, 1)``.
     """
-    LU, pivots, _ = torch.linalg.lu_factor_ex(torch.addcmul(system, eye, diagonal.unsqueeze(-2)))
-    x: Tensor = torch.linalg.lu_solve(LU, pivots, b)
+    matrix = torch.addcmul(system, eye, diagonal.unsqueeze(-2))
+    if inverse:
+        solve = torch.linalg.inv_ex(matrix)[0].matmul
+    else:
+        LU, pivots, _ = torch.linalg.lu_factor_ex(matrix)
+        solve = functools.partial(torch.linalg.lu_solve, LU, pivots)
+    x: Tensor = solve(b)
     for _ in range(refinements - 1):
-        x = torch.linalg.lu_solve(LU, pivots, b + shift * x)
+        x = solve(b + shift * x)
     return x
 
 
@@ -413,7 +433,7 @@ def linearize_modes(
     fd_step: float,
     consistency_gap: float,
     consistency_tolerance: float,
-    static_width: bool = False,
+    for_compile: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Every mode's step linearized at ``x`` by central differences, and its consistency.
 
@@ -429,10 +449,11 @@ def linearize_modes(
             would turn its impulse around) does not count against the mode, while a contact
             held across a wider gap (a box "stuck" to a finger it has left) does.
         consistency_tolerance: relative tolerance of the check.
-        static_width: lay every system out over ``W_max`` slots (the most any mode of the
+        for_compile: lay every system out over ``W_max`` slots (the most any mode of the
             table activates) instead of the most the modes activate among this call's
-            candidates: the same results (the extra rows are the identity, decoupled), larger
-            systems, but shapes that do not depend on the data (no host synchronisation), as
+            candidates (the extra rows are the identity, decoupled), and solve the Tikhonov
+            iterations with explicit inverses: larger systems, the same results to rounding,
+            no host synchronisation and shapes that do not depend on the data, as
             :func:`torch.compile` wants them.
 
     Returns:
@@ -451,7 +472,7 @@ def linearize_modes(
     # Each mode's slots: those it activates among the candidates, in slot order, then others.
     slots = table.slots.expand(B, K, -1)
     acting = candidate.gather(-1, slots.flatten(1)).view_as(slots) & table.activates
-    W = table.slots.shape[-1] if static_width else max(1, int(acting.sum(-1).max()))
+    W = table.slots.shape[-1] if for_compile else max(1, int(acting.sum(-1).max()))
     order = torch.argsort(acting.to(torch.uint8), dim=-1, descending=True, stable=True)[..., :W]
     keep = slots.gather(-1, order)  # (B, K, W)
     acting = acting.gather(-1, order)
@@ -480,14 +501,18 @@ def linearize_modes(
     scale = system.diagonal(dim1=-2, dim2=-1).abs().amax(dim=-1, keepdim=True).clamp_min(1.0)
     shift = (_SQRT_EPS * scale).unsqueeze(-1)  # (B, K, 14, 1, 1)
     eye = table.eyes[W - 1]
-    impulses = _tikhonov(system, off + shift[..., 0], b, shift, eye, _REFINEMENTS)
+    impulses = _tikhonov(
+        system, off + shift[..., 0], b, shift, eye, _REFINEMENTS, inverse=for_compile
+    )
     # Redundant sticking rows leave the impulse split free: solve_mode prefers normal support
     # and shares friction in proportion to the normal loads (kept for modes that stick).
     load = impulses[..., :W, :].clamp(min=0.0)
     share = load.amax(dim=-2, keepdim=True).clamp_min(torch.finfo(torch.float64).eps)
     friction = _FRICTION_COST * share / (load + _MIN_LOAD_SHARE * share)
     weighted = torch.cat([shift.expand_as(load), shift * friction], dim=-2)  # (..., 2W, 1)
-    split = _tikhonov(system, off + weighted[..., 0], b, weighted, eye, _WEIGHTED_REFINEMENTS)
+    split = _tikhonov(
+        system, off + weighted[..., 0], b, weighted, eye, _WEIGHTED_REFINEMENTS, inverse=for_compile
+    )
     impulses = torch.where(sticks.any(dim=-1)[:, :, None, None, None], split, impulses)
     v_next = (v_free + U @ impulses).squeeze(-1)  # (B, K, 14, 3)
 
