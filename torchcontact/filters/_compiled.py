@@ -33,7 +33,22 @@ _Kernel = TypeVar("_Kernel", bound=Callable[..., Any])
 
 @functools.cache
 def _compile(fn: Callable[..., Any]) -> Callable[..., Any]:
-    return torch.compile(fn, dynamic=None)
+    compiled = torch.compile(fn, dynamic=None)
+
+    @functools.wraps(fn)
+    def call(*args: Any, **kwargs: Any) -> Any:
+        # A view as an input makes the compiled code guard on its base's layout, which varies
+        # between steps (a resampled belief is fresh, another a view of the previous one;
+        # the model's fields are slices of a packed tensor): each variant would compile anew,
+        # up to torch's limit, then run eagerly. Copies of the (small) views keep one variant.
+        return compiled(*map(_fresh, args), **{k: _fresh(v) for k, v in kwargs.items()})
+
+    return call
+
+
+def _fresh(value: Any) -> Any:
+    """A copy of a tensor view that owns its memory; anything else as it is."""
+    return value.clone() if isinstance(value, torch.Tensor) and value._is_view() else value
 
 
 def kernel(fn: _Kernel, *, compiled: bool) -> _Kernel:

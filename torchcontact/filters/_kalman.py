@@ -38,21 +38,23 @@ def predict_core(
 
 def predict_factor(
     mean: Tensor, cov: Tensor, F: Tensor, c: Tensor | None, Q: Tensor, *, symmetric: bool
-) -> tuple[Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """:func:`predict_core`, then the plain Cholesky factor of the predicted covariance.
 
     The factor is :func:`~torchcontact.filters._linalg.cholesky_attempt`'s: non-finite where
-    the covariance is not numerically positive definite, so the caller tests it (one host
-    synchronization, outside any compiled region) and refactors with
+    the covariance is not numerically positive definite, so the caller tests the flag (one
+    host synchronization, outside any compiled region) and refactors with
     :func:`~torchcontact.filters._linalg.semidefinite_cholesky` before passing it to
     :func:`update_core` as ``root``: together, the operations of ``predict_core`` and
     ``update_core`` on the same numbers.
 
     Returns:
-        ``(mean⁺ (n, *B), cov⁺ (n, n, *B), root (n, n, *B))``.
+        ``(mean⁺ (n, *B), cov⁺ (n, n, *B), root (n, n, *B), factored)``, ``factored`` a
+        0-dim bool tensor: every entry of ``root`` is finite.
     """
     mean, cov = predict_core(mean, cov, F, c, Q, symmetric=symmetric)
-    return mean, cov, la.cholesky_attempt(cov)
+    root = la.cholesky_attempt(cov)
+    return mean, cov, root, torch.isfinite(root).all()
 
 
 def update_core(

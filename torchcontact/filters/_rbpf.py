@@ -609,11 +609,11 @@ class RBPF:
         # update_core reads the lower triangle only, except that entries without a measurement
         # keep the predicted covariance as it is: symmetrize only then.
         predict = kernel(predict_factor, compiled=self.compiled)
-        mean, cov, root = predict(mean, cov, F, c, Q, symmetric=observed is not None)
+        mean, cov, root, factored = predict(mean, cov, F, c, Q, symmetric=observed is not None)
         if observed is not None and not bool(observed.any()):
             # No measurement at all: update_core would return the prediction and likelihood 0.
             return mean, cov, mean.new_zeros(mean.shape[1:])
-        if not bool(torch.isfinite(root).all()):
+        if not bool(factored):
             root = la.semidefinite_cholesky(cov)
         y_bl, obs_bl = _measurement(y, observed, mean.ndim - 1)
         update = kernel(update_core, compiled=self.compiled)
@@ -749,8 +749,9 @@ class RBPF:
             predicted = la.mv(F[:r].contiguous(), mean.unsqueeze(-2)) + c[:r]
         size = n * n * n * math.prod(predicted.shape[1:])
         predict = kernel(_predicted_block, compiled=self.compiled)
-        block, root = predict(F[:r], cov.unsqueeze(-2), Q[:r, :r], size, observed is not None)
-        if not bool(torch.isfinite(root).all()):
+        predicted_block = predict(F[:r], cov.unsqueeze(-2), Q[:r, :r], size, observed is not None)
+        block, root, factored = predicted_block
+        if not bool(factored):
             root = la.semidefinite_cholesky(block)
         y_bl, obs_bl = _measurement(y, observed, predicted.ndim - 1)
         likelihood = kernel(update_log_likelihood, compiled=self.compiled)
@@ -877,7 +878,7 @@ def _select(packed: Tensor, modes: Tensor) -> Tensor:
 
 def _predicted_block(
     F: Tensor, cov: Tensor, Q: Tensor, size: int, symmetric: bool
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor]:
     """The leading ``(r, r)`` block of
     :func:`~torchcontact.filters._kalman.predict_core`'s ``F P Fᵀ + Q`` by the same
     operations (products sized as the full step's, ``size``), and its plain Cholesky factor.
@@ -887,13 +888,14 @@ def _predicted_block(
             Q: ``(r, r, *B)``; symmetric: symmetrize the block.
 
     Returns:
-        ``(r, r, *B)`` block and ``(r, r, *B)`` factor (see
+        ``(r, r, *B)`` block, ``(r, r, *B)`` factor and the 0-dim flag ``factored`` (see
         :func:`~torchcontact.filters._kalman.predict_factor`).
     """
     block = la.add_(la.mm_t(la.mm(F, cov, size=size), F, size=size), Q)
     if symmetric:
         block = la.symmetrize(block)
-    return block, la.cholesky_attempt(block)
+    root = la.cholesky_attempt(block)
+    return block, root, torch.isfinite(root).all()
 
 
 def _measurement(
