@@ -27,6 +27,7 @@ from torchcontact.filters import (
     collect_modes,
     empirical_transition,
 )
+from torchcontact.filters._compiled import kernel
 from torchcontact.filters._planar_linearization import linearize_modes
 
 F64 = torch.float64
@@ -155,3 +156,28 @@ def test_compiled_must_be_a_bool() -> None:
     box, _, _ = _linearization_cases()[0]
     with pytest.raises(ValueError, match="compiled"):
         replace(box, compiled="yes")
+
+
+def _scaled_sum(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return (2.0 * a + b).sum(0)
+
+
+def test_views_of_different_bases_reuse_one_compiled_kernel() -> None:
+    from torch._dynamo.utils import counters
+
+    compiled = kernel(_scaled_sum, compiled=True)
+    assert kernel(_scaled_sum, compiled=True) is compiled  # one per process
+    assert kernel(_scaled_sum, compiled=False) is _scaled_sum
+    base = torch.arange(24.0).reshape(4, 6)
+    other = torch.arange(48.0).reshape(8, 6)
+    inputs = [
+        (base[:2], base[2:]),  # slices of one tensor
+        (other[1:3], other[5:7]),  # of a larger one
+        (base[:2].clone(), other[:2].clone()),  # no views
+        (torch.arange(12.0).reshape(2, 6), other.T.contiguous().T[:2]),
+    ]
+    compiled(*inputs[0])
+    before = counters["frames"]["ok"]
+    for a, b in inputs:
+        torch.testing.assert_close(compiled(a, b), _scaled_sum(a, b))
+    assert counters["frames"]["ok"] == before  # compiled once, before the loop

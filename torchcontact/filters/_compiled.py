@@ -40,15 +40,18 @@ def _compile(fn: Callable[..., Any]) -> Callable[..., Any]:
         # A view as an input makes the compiled code guard on its base's layout, which varies
         # between steps (a resampled belief is fresh, another a view of the previous one;
         # the model's fields are slices of a packed tensor): each variant would compile anew,
-        # up to torch's limit, then run eagerly. Copies of the (small) views keep one variant.
+        # up to torch's limit, then run eagerly. Contiguous copies of the (small) views keep one
+        # variant.
         return compiled(*map(_fresh, args), **{k: _fresh(v) for k, v in kwargs.items()})
 
     return call
 
 
 def _fresh(value: Any) -> Any:
-    """A copy of a tensor view that owns its memory; anything else as it is."""
-    return value.clone() if isinstance(value, torch.Tensor) and value._is_view() else value
+    """A contiguous copy of a tensor view (owning its memory); anything else as it is."""
+    if isinstance(value, torch.Tensor) and value._is_view():
+        return value.clone(memory_format=torch.contiguous_format)
+    return value
 
 
 def kernel(fn: _Kernel, *, compiled: bool) -> _Kernel:
