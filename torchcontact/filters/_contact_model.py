@@ -130,9 +130,10 @@ class PlanarContactModel:
         consistency_gap: gaps (metres) of a mode's contacts that the check treats as closed.
         compiled: run the linearization through :func:`torch.compile` (see
             ``torchcontact.filters._compiled``; the first call compiles, tens of seconds, then
-            a call takes about half the eager time: the batched LU solves remain), with every
-            mode's system laid out over the most slots any mode activates, so that its shapes
-            do not depend on the linearization point.
+            a call takes a third to a quarter of the eager time), with every mode's system laid
+            out over the most slots any mode activates, so that its shapes do not depend on the
+            linearization point, and solved with explicit inverses (the same results to
+            rounding).
 
     Construction validates every field and raises ``ValueError`` naming the field at fault.
     """
