@@ -48,7 +48,10 @@ def _compile(fn: Callable[..., Any]) -> Callable[..., Any]:
 
 
 def _fresh(value: Any) -> Any:
-    """A contiguous copy of a tensor view (owning its memory); anything else as it is."""
+    """A contiguous copy of a tensor view (owning its memory), a dict of them with its views
+    copied; anything else as it is."""
+    if isinstance(value, dict):
+        return {k: _fresh(v) for k, v in value.items()}
     if isinstance(value, torch.Tensor) and value._is_view():
         return value.clone(memory_format=torch.contiguous_format)
     return value

@@ -36,27 +36,6 @@ def predict_core(
     return mean, (la.symmetrize(cov) if symmetric else cov)
 
 
-def predict_factor(
-    mean: Tensor, cov: Tensor, F: Tensor, c: Tensor | None, Q: Tensor, *, symmetric: bool
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """:func:`predict_core`, then the plain Cholesky factor of the predicted covariance.
-
-    The factor is :func:`~torchcontact.filters._linalg.cholesky_attempt`'s: non-finite where
-    the covariance is not numerically positive definite, so the caller tests the flag (one
-    host synchronization, outside any compiled region) and refactors with
-    :func:`~torchcontact.filters._linalg.semidefinite_cholesky` before passing it to
-    :func:`update_core` as ``root``: together, the operations of ``predict_core`` and
-    ``update_core`` on the same numbers.
-
-    Returns:
-        ``(mean⁺ (n, *B), cov⁺ (n, n, *B), root (n, n, *B), factored)``, ``factored`` a
-        0-dim bool tensor: every entry of ``root`` is finite.
-    """
-    mean, cov = predict_core(mean, cov, F, c, Q, symmetric=symmetric)
-    root = la.cholesky_attempt(cov)
-    return mean, cov, root, torch.isfinite(root).all()
-
-
 def update_core(
     mean: Tensor,
     cov: Tensor,
@@ -66,7 +45,7 @@ def update_core(
     R: Tensor,
     observed: Tensor | None,
     *,
-    root: Tensor | None = None,
+    entrywise: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Kalman update in the batch-last layout (see ``_linalg``), Joseph form.
 
@@ -79,9 +58,8 @@ def update_core(
             from the rest, so ``S`` is block diagonal with an identity block that contributes
             neither gain nor likelihood. An entry with no observed component is returned
             unchanged with log-likelihood 0.
-        root: ``(n, n, *B)`` the lower Cholesky factor of ``cov`` if the caller has it (see
-            :func:`predict_factor`); :func:`~torchcontact.filters._linalg.psd_cholesky` if
-            None.
+        entrywise: factor ``cov`` per entry without host synchronization (compiled
+            kernels; see :func:`~torchcontact.filters._linalg.psd_cholesky`).
 
     Returns:
         ``(mean⁺ (n, *B), cov⁺ (n, n, *B), log_likelihood (*B))``; the log-likelihood is
@@ -98,8 +76,7 @@ def update_core(
     # (I - K H) P (I - K H)ᵀ + K R Kᵀ = (C - K H C)(C - K H C)ᵀ + K R Kᵀ are sums of Gram
     # matrices, positive semi-definite to rounding even when P spans many orders of magnitude
     # (tiny R, huge P) in float32, where products of P itself would cancel catastrophically.
-    if root is None:
-        root = la.psd_cholesky(cov)
+    root = la.psd_cholesky(cov, entrywise=entrywise)
     HC = la.mm(H, root)
     HP = la.mm_t(HC, root)
     low = la.Cholesky(la.add_(la.mm_t(HC, HC), R))  # S = L Lᵀ
@@ -129,7 +106,7 @@ def update_log_likelihood(
     R: Tensor,
     observed: Tensor | None,
     *,
-    root: Tensor | None = None,
+    entrywise: bool = False,
 ) -> Tensor:
     """The log-likelihood of :func:`update_core` alone, by the same operations (the same values).
 
@@ -144,8 +121,8 @@ def update_log_likelihood(
     differently).
 
     Args:
-        mean: ``(r, *B)``; cov: ``(r, r, *B)``, ``r <= n``; y, H, d, R, observed: as in
-            :func:`update_core` (``H`` is ``(k, n, *B)``).
+        mean: ``(r, *B)``; cov: ``(r, r, *B)``, ``r <= n``; y, H, d, R, observed,
+            entrywise: as in :func:`update_core` (``H`` is ``(k, n, *B)``).
 
     Returns:
         ``(*B)`` log-likelihoods.
@@ -157,8 +134,7 @@ def update_log_likelihood(
     residual = y - la.mv(H[:, :r], mean)
     if d is not None:
         residual = residual - d
-    if root is None:
-        root = la.psd_cholesky(cov)
+    root = la.psd_cholesky(cov, entrywise=entrywise)
     batch = math.prod(torch.broadcast_shapes(mean.shape[1:], cov.shape[2:], H.shape[2:]))
     HC = la.mm(H[:, :r], root, size=k * n * n * batch)
     low = la.Cholesky(la.add_(la.mm_t(HC, HC, size=k * n * k * batch), R))

@@ -168,39 +168,30 @@ def _dense_lower(low: list[list[Tensor]]) -> Tensor:
     return torch.stack(entries).reshape(n, n, *zero.shape)
 
 
-def psd_cholesky(a: Tensor) -> Tensor:
+def psd_cholesky(a: Tensor, *, entrywise: bool = False) -> Tensor:
     """Lower factor ``L`` with ``L Lᵀ = A`` of symmetric positive **semi**-definite matrices.
 
-    The plain factorization (:func:`cholesky_attempt`) is tried first; if any matrix of the
-    batch has a non-positive pivot, the batch is refactored by :func:`semidefinite_cholesky`.
-    Only the lower triangle is read.
+    The plain factorization is tried first; where a matrix has a non-positive pivot, it is
+    refactored by :func:`semidefinite_cholesky`. By default the decision is per batch (if any
+    matrix fails, every one is refactored; one host synchronization); with ``entrywise`` it
+    is per matrix, without host synchronization, for compiled kernels (the two factors agree
+    to rounding on positive definite matrices). Only the lower triangle is read. Matrices
+    above ``_UNROLL_MAX`` always take the semi-definite factorization.
 
     Args:
         a: ``(n, n, *B)``.
+        entrywise: decide per matrix instead of per batch.
 
     Returns:
         ``(n, n, *B)`` lower-triangular factor.
     """
-    low = cholesky_attempt(a)
-    if a.shape[0] > _UNROLL_MAX or bool(torch.isfinite(low).all()):
+    if a.shape[0] > _UNROLL_MAX:
+        return semidefinite_cholesky(a)
+    low = _dense_lower(_unrolled_cholesky(a, semidefinite=False))
+    if entrywise:
+        return torch.where(torch.isfinite(low).all(0).all(0), low, semidefinite_cholesky(a))
+    if bool(torch.isfinite(low).all()):
         return low
-    return semidefinite_cholesky(a)
-
-
-def cholesky_attempt(a: Tensor) -> Tensor:
-    """The first half of :func:`psd_cholesky`, without its test: the plain factor, non-finite
-    where a matrix has a non-positive pivot (matrices up to ``_UNROLL_MAX``; larger ones get
-    :func:`semidefinite_cholesky`). No host synchronization, so :func:`torch.compile` fuses it
-    with what comes before.
-
-    Args:
-        a: ``(n, n, *B)``.
-
-    Returns:
-        ``(n, n, *B)`` lower-triangular factor.
-    """
-    if a.shape[0] <= _UNROLL_MAX:
-        return _dense_lower(_unrolled_cholesky(a, semidefinite=False))
     return semidefinite_cholesky(a)
 
 

@@ -16,7 +16,7 @@ from torchcontact.filters._compiled import kernel
 from torchcontact.filters._gaussian import Gaussian, check_gaussian, unchecked_gaussian
 from torchcontact.filters._kalman import (
     observed_components,
-    predict_factor,
+    predict_core,
     update_core,
     update_log_likelihood,
 )
@@ -606,19 +606,16 @@ class RBPF:
         """
         model = self.model
         n, m = model.state_dim, model.obs_dim
-        F, c, Q, H, d, R = _unpack(params, shared, n, m)
-        # update_core reads the lower triangle only, except that entries without a measurement
-        # keep the predicted covariance as it is: symmetrize only then.
-        predict = kernel(predict_factor, compiled=self.compiled)
-        mean, cov, root, factored = predict(mean, cov, F, c, Q, symmetric=observed is not None)
+        y_bl, obs_bl = _measurement(y, observed, mean.ndim - 1)
+        if self.compiled:
+            fused = kernel(_predict_update, compiled=True)
+            return fused(mean, cov, params, shared, y_bl, obs_bl, n=n, m=m, entrywise=True)
         if observed is not None and not bool(observed.any()):
             # No measurement at all: update_core would return the prediction and likelihood 0.
+            F, c, Q, *_ = _unpack(params, shared, n, m)
+            mean, cov = predict_core(mean, cov, F, c, Q)
             return mean, cov, mean.new_zeros(mean.shape[1:])
-        if not bool(factored):
-            root = la.semidefinite_cholesky(cov)
-        y_bl, obs_bl = _measurement(y, observed, mean.ndim - 1)
-        update = kernel(update_core, compiled=self.compiled)
-        return update(mean, cov, y_bl, H, d, R, obs_bl, root=root)
+        return _predict_update(mean, cov, params, shared, y_bl, obs_bl, n=n, m=m)
 
     def _step_bootstrap(
         self,
@@ -725,7 +722,7 @@ class RBPF:
         """
         model = self.model
         n, m, K = model.state_dim, model.obs_dim, model.num_modes
-        if observed is not None and not bool(observed.any()):
+        if not self.compiled and observed is not None and not bool(observed.any()):
             return mean.new_zeros(*mean.shape[1:], K)  # no measurement: likelihood 1
         nb, lead = mean.ndim - 2, packed.ndim - 2
         r = n
@@ -749,15 +746,21 @@ class RBPF:
         else:
             predicted = la.mv(F[:r].contiguous(), mean.unsqueeze(-2)) + c[:r]
         size = n * n * n * math.prod(predicted.shape[1:])
-        predict = kernel(_predicted_block, compiled=self.compiled)
-        block, root, factored = predict(
-            F[:r], cov.unsqueeze(-2), Q[:r, :r], size, observed is not None
-        )
-        if not bool(factored):
-            root = la.semidefinite_cholesky(block)
         y_bl, obs_bl = _measurement(y, observed, predicted.ndim - 1)
-        likelihood = kernel(update_log_likelihood, compiled=self.compiled)
-        log_lik = likelihood(predicted, block, y_bl, H, d, R, obs_bl, root=root)
+        likelihood = kernel(_predicted_log_likelihood, compiled=self.compiled)
+        log_lik = likelihood(
+            predicted,
+            F[:r],
+            cov.unsqueeze(-2),
+            Q[:r, :r],
+            y_bl,
+            H,
+            d,
+            R,
+            obs_bl,
+            size=size,
+            entrywise=self.compiled,
+        )
         return log_lik.transpose(-1, -2)  # (*B, N, K)
 
     def _belief(
@@ -866,6 +869,31 @@ def _unpack(params: Tensor, shared: dict[str, Tensor], n: int, m: int) -> list[T
     return [fields[name] for name in shapes]
 
 
+def _predict_update(
+    mean: Tensor,
+    cov: Tensor,
+    params: Tensor,
+    shared: dict[str, Tensor],
+    y: Tensor,
+    observed: Tensor | None,
+    *,
+    n: int,
+    m: int,
+    entrywise: bool = False,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Kalman predict + update under the packed per-particle ``params`` (see
+    :meth:`RBPF._kalman`; ``y`` and ``observed`` batch-last, :func:`_measurement`).
+
+    ``entrywise`` factors the predicted covariances per particle: no host synchronization,
+    so the compiled form is one kernel (see :func:`update_core`).
+    """
+    F, c, Q, H, d, R = _unpack(params, shared, n, m)
+    # update_core reads the lower triangle only, except that entries without a measurement
+    # keep the predicted covariance as it is: symmetrize only then.
+    mean, cov = predict_core(mean, cov, F, c, Q, symmetric=observed is not None)
+    return update_core(mean, cov, y, H, d, R, observed, entrywise=entrywise)
+
+
 def _select(packed: Tensor, modes: Tensor) -> Tensor:
     """Batch-last ``(D, *B, N)`` packed dynamics of the particles' ``modes (*B, N)``, from
     ``packed (K, D)`` (one set for the whole batch: one index_select) or ``(*B', K, D)``."""
@@ -878,26 +906,38 @@ def _select(packed: Tensor, modes: Tensor) -> Tensor:
     return params.movedim(-1, 0)
 
 
-def _predicted_block(
-    F: Tensor, cov: Tensor, Q: Tensor, size: int, symmetric: bool
-) -> tuple[Tensor, Tensor, Tensor]:
-    """The leading ``(r, r)`` block of
-    :func:`~torchcontact.filters._kalman.predict_core`'s ``F P Fᵀ + Q`` by the same
-    operations (products sized as the full step's, ``size``), and its plain Cholesky factor.
+def _predicted_log_likelihood(
+    predicted: Tensor,
+    F: Tensor,
+    cov: Tensor,
+    Q: Tensor,
+    y: Tensor,
+    H: Tensor,
+    d: Tensor | None,
+    R: Tensor,
+    observed: Tensor | None,
+    *,
+    size: int,
+    entrywise: bool,
+) -> Tensor:
+    """The children's predictive log-likelihoods from the leading ``(r, r)`` block of
+    :func:`~torchcontact.filters._kalman.predict_core`'s ``F P Fᵀ + Q``, computed by the same
+    operations (products sized as the full step's, ``size``).
 
     Args:
+        predicted: ``(r, *B)`` the leading components of the predicted means.
         F: ``(r, n, *B)`` the leading rows of the children's ``F``; cov: ``(n, n, *B)``;
-            Q: ``(r, r, *B)``; symmetric: symmetrize the block.
+            Q: ``(r, r, *B)``.
+        y, H, d, R, observed: batch-last, as in :func:`update_log_likelihood`.
+        entrywise: see :func:`update_core`.
 
     Returns:
-        ``(r, r, *B)`` block, ``(r, r, *B)`` factor and the 0-dim flag ``factored`` (see
-        :func:`~torchcontact.filters._kalman.predict_factor`).
+        ``(*B)`` log-likelihoods.
     """
     block = la.add_(la.mm_t(la.mm(F, cov, size=size), F, size=size), Q)
-    if symmetric:
+    if observed is not None:  # as _predict_update symmetrizes
         block = la.symmetrize(block)
-    root = la.cholesky_attempt(block)
-    return block, root, torch.isfinite(root).all()
+    return update_log_likelihood(predicted, block, y, H, d, R, observed, entrywise=entrywise)
 
 
 def _measurement(
