@@ -98,10 +98,6 @@ class Args:
         default=_LEARNING.shaping,
         metadata={"help": "potential-based shaping scale, reward per metre"},
     )
-    max_repeat: int = dataclasses.field(
-        default=_LEARNING.max_repeat,
-        metadata={"help": "repeat a decision's action until the state changes, at most this often"},
-    )
     eval_every: int = dataclasses.field(default=2, metadata={"help": "rounds between evals"})
     eval_episodes: int = dataclasses.field(
         default=32, metadata={"help": "greedy episodes per evaluation during training"}
@@ -160,7 +156,6 @@ def run(args: Args) -> dict[str, Any]:
         epsilon=args.epsilon,
         exploration=cast(Exploration, args.exploration),  # checked by DynaQ
         shaping=args.shaping,
-        max_repeat=args.max_repeat,
     )
     agent = learning.agent(seed=args.seed)
     shaping = learning.potential_shaping()
@@ -177,13 +172,7 @@ def run(args: Args) -> dict[str, Any]:
         range(start, args.rounds), desc="dyna-q rounds", initial=start, total=args.rounds
     ):
         updates_before, clock = agent.planning_updates, time.perf_counter()
-        result = run_round(
-            env,
-            agent,
-            seed=args.seed * 1_000_003 + r,
-            shaping=shaping,
-            max_repeat=learning.max_repeat,
-        )
+        result = run_round(env, agent, seed=args.seed * 1_000_003 + r, shaping=shaping)
         if args.sweep and args.planning_steps > 0:
             sweep = agent.sweep()
             if not sweep.converged:

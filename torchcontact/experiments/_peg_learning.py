@@ -82,7 +82,6 @@ class PegLearning:
         epsilon: exploration rate.
         exploration: ``"least_tried"`` or ``"uniform"``.
         shaping: scale of :class:`PotentialShaping`.
-        max_repeat: the most steps one learning decision lasts (:func:`run_round`).
     """
 
     alpha: float = 0.1
@@ -93,7 +92,6 @@ class PegLearning:
     epsilon: float = 0.1
     exploration: Exploration = "least_tried"
     shaping: float = 5.0
-    max_repeat: int = 1
 
     def agent(self, *, seed: int, num_actions: int = 7) -> DynaQ:
         """A fresh agent with these settings (arguments checked by :class:`DynaQ`)."""
@@ -140,7 +138,6 @@ def run_round(
     seed: int,
     shaping: PotentialShaping,
     learn: bool = True,
-    max_repeat: int = 1,
 ) -> RoundResult:
     """Run one episode in each of the ``B`` sub-environments, all started with ``seed``.
 
@@ -154,30 +151,13 @@ def run_round(
     else greedy with random tie-breaking and no update, where states the agent never acted
     from borrow the nearest known state's values (:class:`QLookup`).
 
-    **Repeated actions.** With ``max_repeat > 1`` a learning decision is an *option*: its
-    action is repeated until the manipulation state changes, the episode ends or
-    ``max_repeat`` steps have passed, and the agent learns from the decision's transition
-    ``(m, a, R, m′)`` with ``R = Σ r_i + γ Φ(m′) − Φ(m)`` (the environment rewards of its
-    steps, one discount per decision: a semi-Markov decision over the same states). A cell
-    that spans many moves then no longer shows every move as a self-loop whose value is that
-    of staying, which is what lets a greedy policy idle in it. Greedy evaluation is unchanged:
-    repeating the greedy action of a state until the state changes is what greedy acting
-    per step does.
-
     Args:
         env: the vector environment (any observation mode; the true state comes from infos).
         agent: the Dyna-Q agent (``num_actions`` = the env's actions).
         seed: the round's seed.
         shaping: the reward shaping of the learning updates.
         learn: learn (ε-greedy) or only evaluate (greedy).
-        max_repeat: the most steps one learning decision lasts, an int ``>= 1`` (1: every
-            step is a decision).
-
-    Raises:
-        ValueError: ``max_repeat`` is not an int ``>= 1``.
     """
-    if isinstance(max_repeat, bool) or not isinstance(max_repeat, int) or max_repeat < 1:
-        raise ValueError(f"max_repeat must be an int >= 1, got {max_repeat!r}")
     B = env.num_envs
     depth = env.config.insertion_depth
     key = env.states.key
@@ -194,23 +174,15 @@ def run_round(
     returns = np.zeros(B)
     lengths = np.zeros(B, dtype=np.int64)
     successes = np.zeros(B, dtype=bool)
-    # The open decision of each sub-environment: its start state, start potential, action,
-    # summed rewards and steps so far (``steps == 0``: a new decision is due).
-    start_states = list(states)
-    start_potential = potential.copy()
-    actions = np.zeros(B, dtype=np.int64)
-    decision_rewards = np.zeros(B)
-    decision_steps = np.zeros(B, dtype=np.int64)
     td_errors: list[float] = []
     parts: list[PegTransitions] = []
     rng = np.random.default_rng(seed)
     lookup = None if learn else QLookup(agent, env.states)
     while live.any():
         if learn:
-            for b in np.flatnonzero(live & (decision_steps == 0)):
-                actions[b] = agent.act(states[b])
-                start_states[b], start_potential[b] = states[b], potential[b]
-            actions[~live] = 0
+            actions = np.array(
+                [agent.act(s) if on else 0 for s, on in zip(states, live, strict=True)]
+            )
         else:
             assert lookup is not None
             q = lookup.values(torch.as_tensor(info["manipulation_state_id"]))[0].numpy()
@@ -218,33 +190,27 @@ def run_round(
         _, reward, terminated, truncated, next_info = env.step(actions)
         next_states = keys(next_info)
         next_potential = shaping.potential(env.states, next_info["peg_pose"], depth)
-        decision_rewards += np.where(live, reward, 0.0)
-        decision_steps += live
-        moved = next_info["manipulation_state_id"] != info["manipulation_state_id"]
-        ended = live & (terminated | truncated | moved | (decision_steps >= max_repeat))
+        shaped = shaping.shaped(
+            reward,
+            potential=potential,
+            next_potential=next_potential,
+            terminated=terminated,
+            gamma=agent.gamma,
+        )
         parts.append(
             PegTransitions.from_infos(info, actions, next_info, valid=live, first=first & live)
         )
-        if learn:
-            shaped = shaping.shaped(
-                decision_rewards,
-                potential=start_potential,
-                next_potential=next_potential,
-                terminated=terminated,
-                gamma=agent.gamma,
-            )
-            for b in np.flatnonzero(ended):
-                s, a, s2 = start_states[b], int(actions[b]), next_states[b]
+        for b in np.flatnonzero(live):
+            if learn:
+                s, a, s2 = states[b], int(actions[b]), next_states[b]
                 target = shaped[b] + (
                     0.0 if terminated[b] else agent.gamma * float(agent.q_values(s2).max())
                 )
                 td_errors.append(abs(target - float(agent.q_values(s)[a])))
                 agent.observe(s, a, float(shaped[b]), s2, bool(terminated[b]))
-        decision_rewards[ended] = 0.0
-        decision_steps[ended] = 0
-        returns += np.where(live, reward, 0.0)
-        lengths += live
-        successes |= live & next_info["success"].astype(bool)
+            returns[b] += reward[b]
+            lengths[b] += 1
+            successes[b] |= bool(next_info["success"][b])
         live = live & ~(terminated | truncated)
         first[:] = False
         states, potential, info = next_states, next_potential, next_info
