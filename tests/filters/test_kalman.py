@@ -11,6 +11,7 @@ import torch
 
 from tests.filters import reference as ref
 from torchcontact.filters import Gaussian, kf_predict, kf_update
+from torchcontact.filters import _linalg as la
 
 F64 = torch.float64
 
@@ -219,6 +220,28 @@ def test_update_log_likelihood_is_update_cores_to_the_bit() -> None:
             *_, expected = update_core(mean, cov, y, select[..., None], None, R, obs)
             got = update_log_likelihood(mean[:r], cov[:r, :r], y, select[..., None], None, R, obs)
             assert torch.equal(got, expected)
+
+
+def test_psd_cholesky_per_batch_and_entrywise() -> None:
+    """Both modes factor PD and singular PSD matrices exactly (L Lᵀ = A, lower triangular,
+    finite); on a batch of PD matrices the entrywise factor is the plain one to rounding, and
+    NumPy's Cholesky is the reference; a batch with one singular matrix is refactored whole."""
+    gen = torch.Generator().manual_seed(3)
+    pd = _spd(5, 6, 6, gen=gen)
+    v = torch.randn(6, 2, dtype=F64, generator=gen)
+    singular = (v @ v.T).unsqueeze(0)  # rank 2
+    mixed = torch.cat([pd, singular])
+    for a in (pd, mixed):
+        a_bl = la.to_batch_last(a, 2, 1).contiguous()  # (6, 6, B), the kernels' layout
+        for entrywise in (False, True):
+            low = la.to_batch_first(la.psd_cholesky(a_bl, entrywise=entrywise), 2)
+            assert torch.isfinite(low).all()
+            assert torch.equal(low, low.tril())
+            torch.testing.assert_close(low @ low.mT, a, rtol=0, atol=1e-12)
+    reference = torch.from_numpy(np.linalg.cholesky(pd.numpy()))
+    for entrywise in (False, True):
+        low = la.psd_cholesky(la.to_batch_last(pd, 2, 1).contiguous(), entrywise=entrywise)
+        torch.testing.assert_close(la.to_batch_first(low, 2), reference, rtol=0, atol=1e-13)
 
 
 def test_partial_nan_without_mask_raises() -> None:

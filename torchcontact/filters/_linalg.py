@@ -171,25 +171,24 @@ def _dense_lower(low: list[list[Tensor]]) -> Tensor:
 def psd_cholesky(a: Tensor, *, entrywise: bool = False) -> Tensor:
     """Lower factor ``L`` with ``L Lᵀ = A`` of symmetric positive **semi**-definite matrices.
 
-    The plain factorization is tried first; where a matrix has a non-positive pivot, it is
-    refactored by :func:`semidefinite_cholesky`. By default the decision is per batch (if any
-    matrix fails, every one is refactored; one host synchronization); with ``entrywise`` it
-    is per matrix, without host synchronization, for compiled kernels (the two factors agree
-    to rounding on positive definite matrices). Only the lower triangle is read. Matrices
-    above ``_UNROLL_MAX`` always take the semi-definite factorization.
+    The plain factorization is tried first; if any matrix of the batch has a non-positive
+    pivot, the batch is refactored by :func:`semidefinite_cholesky` (one host
+    synchronization). With ``entrywise`` every matrix takes the semi-definite factorization
+    directly: no host synchronization, for compiled kernels, and the same factor to rounding
+    on positive definite matrices (its pivots' reciprocal square roots are computed as
+    ``rsqrt`` instead of ``1 / sqrt``). Only the lower triangle is read. Matrices above
+    ``_UNROLL_MAX`` always take the semi-definite factorization.
 
     Args:
         a: ``(n, n, *B)``.
-        entrywise: decide per matrix instead of per batch.
+        entrywise: decide per matrix, without host synchronization.
 
     Returns:
         ``(n, n, *B)`` lower-triangular factor.
     """
-    if a.shape[0] > _UNROLL_MAX:
+    if entrywise or a.shape[0] > _UNROLL_MAX:
         return semidefinite_cholesky(a)
     low = _dense_lower(_unrolled_cholesky(a, semidefinite=False))
-    if entrywise:
-        return torch.where(torch.isfinite(low).all(0).all(0), low, semidefinite_cholesky(a))
     if bool(torch.isfinite(low).all()):
         return low
     return semidefinite_cholesky(a)
