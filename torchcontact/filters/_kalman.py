@@ -58,7 +58,7 @@ def update_core(
             from the rest, so ``S`` is block diagonal with an identity block that contributes
             neither gain nor likelihood. An entry with no observed component is returned
             unchanged with log-likelihood 0.
-        entrywise: factor ``cov`` per entry without host synchronization (compiled
+        entrywise: factor ``cov`` matrix by matrix without host synchronization (compiled
             kernels; see :func:`~torchcontact.filters._linalg.psd_cholesky`).
 
     Returns:

@@ -181,7 +181,7 @@ def psd_cholesky(a: Tensor, *, entrywise: bool = False) -> Tensor:
 
     Args:
         a: ``(n, n, *B)``.
-        entrywise: decide per matrix, without host synchronization.
+        entrywise: the semi-definite factorization for every matrix (no host sync).
 
     Returns:
         ``(n, n, *B)`` lower-triangular factor.
