@@ -38,6 +38,7 @@ from torchcontact.experiments import (
     QLookup,
     evaluate_settings,
     results_table,
+    round_seed,
     run_round,
 )
 from torchcontact.geometry import HalfPlane, Polygon
@@ -171,7 +172,8 @@ def _peg_in_hole(args: DemoArgs) -> list[str]:
     shaping = learning.potential_shaping()
     rounds = []
     for r in range(args.peg_rounds):
-        rounds.append(run_round(env, agent, seed=args.seed * 1_000_003 + r, shaping=shaping))
+        seed = round_seed(args.seed * 1_000_003, r, num_envs=args.peg_envs)
+        rounds.append(run_round(env, agent, seed=seed, shaping=shaping))
         agent.sweep()
     model = PegInHoleBeliefModel.fit(
         PegTransitions.concat([r.transitions for r in rounds]), agent.graph, task=env.task

@@ -45,6 +45,7 @@ from torchcontact.experiments import (
     load_checkpoint,
     parse_dataclass,
     results_table,
+    round_seed,
     run_round,
 )
 from torchcontact.rl import Exploration, StepSize
@@ -172,7 +173,8 @@ def run(args: Args) -> dict[str, Any]:
         range(start, args.rounds), desc="dyna-q rounds", initial=start, total=args.rounds
     ):
         updates_before, clock = agent.planning_updates, time.perf_counter()
-        result = run_round(env, agent, seed=args.seed * 1_000_003 + r, shaping=shaping)
+        seed = round_seed(args.seed * 1_000_003, r, num_envs=args.num_envs)
+        result = run_round(env, agent, seed=seed, shaping=shaping)
         if args.sweep and args.planning_steps > 0:
             sweep = agent.sweep()
             if not sweep.converged:
@@ -201,7 +203,7 @@ def run(args: Args) -> dict[str, Any]:
             greedy = run_round(
                 eval_env,
                 agent,
-                seed=args.seed * 1_000_003 + 500_000 + r,
+                seed=round_seed(args.seed * 1_000_003 + 500_000, r, num_envs=args.eval_episodes),
                 shaping=shaping,
                 learn=False,
             )

@@ -41,6 +41,7 @@ from torchcontact.experiments import (
     load_checkpoint,
     parse_dataclass,
     results_table,
+    round_seed,
 )
 from torchcontact.rl import (
     DynaQ,
@@ -285,7 +286,7 @@ def _train_round(
     index, and the buffer's sampler is checkpointed, so a resumed run equals a straight one.
     """
     gamma, shaping, depth = tabular.agent.gamma, tabular.shaping, env.config.insertion_depth
-    seed = args.seed * 1_000_003 + round_index
+    seed = round_seed(args.seed * 1_000_003, round_index, num_envs=env.num_envs)
     generator = torch.Generator().manual_seed(seed)
     observation, info = env.reset(seed=seed)
     belief = filt.init(observation)

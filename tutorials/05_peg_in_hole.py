@@ -50,6 +50,7 @@ from torchcontact.experiments import (
     QLookup,
     evaluate_settings,
     results_table,
+    round_seed,
     run_round,
 )
 from torchcontact.rl import DynaQ
@@ -127,11 +128,12 @@ for n in (0, 10):
     agent = PegLearning(planning_steps=n).agent(seed=0)
     curves[n] = []
     for r in range(rounds):
-        result = run_round(env, agent, seed=1_000 * r, shaping=shaping)
+        result = run_round(env, agent, seed=round_seed(0, r, num_envs=B), shaping=shaping)
         if n > 0:
             agent.sweep()  # planning to convergence between rounds
             recorded.append(result.transitions)
-        greedy = run_round(evaluation_env, agent, seed=10**6 + r, shaping=shaping, learn=False)
+        seed = round_seed(10**6, r, num_envs=B)  # each evaluation its own episodes
+        greedy = run_round(evaluation_env, agent, seed=seed, shaping=shaping, learn=False)
         curves[n].append(float(greedy.successes.mean()))
     agents[n] = agent
     print(f"n = {n:2d}: greedy success per round {np.round(curves[n], 2).tolist()}")

@@ -6,11 +6,13 @@ import dataclasses
 from pathlib import Path
 from types import ModuleType
 
+import numpy as np
 import pytest
 import torch
 
 from tests.train import load_script
-from torchcontact.experiments import PegLearning, PotentialShaping, load_checkpoint
+from torchcontact.envs import PegInHole2DVector
+from torchcontact.experiments import PegLearning, PotentialShaping, load_checkpoint, round_seed
 
 
 def _tiny(module: ModuleType, out: Path, **changes: object) -> object:
@@ -119,3 +121,18 @@ def test_bad_choices_name_the_argument(module: ModuleType, tmp_path: Path) -> No
         module.run(_tiny(module, tmp_path, exploration="greedy"))
     with pytest.raises(ValueError, match="step_size must be 'constant' or 'visits'"):
         module.run(_tiny(module, tmp_path, step_size="decay"))
+
+
+def test_rounds_play_distinct_episodes() -> None:
+    """Sub-environment i of a reset with seed s plays seed s + i: rounds seeded base + r would
+    share all but one episode with the previous round; round_seed keeps every round's
+    episodes distinct."""
+    env = PegInHole2DVector(num_envs=4)
+    starts = []
+    for r in range(3):
+        _, info = env.reset(seed=round_seed(7, r, num_envs=4))
+        starts.append(info["peg_pose"])
+    assert len(np.unique(np.concatenate(starts).round(12), axis=0)) == 12
+    _, first = env.reset(seed=7)
+    _, shifted = env.reset(seed=8)
+    np.testing.assert_array_equal(first["peg_pose"][1:], shifted["peg_pose"][:-1])

@@ -25,6 +25,7 @@ from torchcontact.experiments._peg_learning import (
     PegLearning,
     PotentialShaping,
     RoundResult,
+    round_seed,
     run_round,
 )
 from torchcontact.experiments._q_lookup import QLookup
@@ -44,5 +45,6 @@ __all__ = [
     "load_checkpoint",
     "parse_dataclass",
     "results_table",
+    "round_seed",
     "run_round",
 ]

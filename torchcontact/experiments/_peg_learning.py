@@ -112,6 +112,21 @@ class PegLearning:
         return PotentialShaping(self.shaping)
 
 
+def round_seed(base: int, round_index: int, *, num_envs: int) -> int:
+    """The seed of round ``round_index`` of a run whose rounds reset ``num_envs`` environments.
+
+    A vector environment reset with seed ``s`` seeds sub-environment ``i`` with ``s + i``, so
+    the seeds of consecutive rounds must lie ``num_envs`` apart for their episodes to differ
+    (seeds ``base + r`` would share all but one episode with the previous round).
+
+    Args:
+        base: the run's seed base (e.g. ``seed * 1_000_003``, plus an offset per purpose).
+        round_index: the round, ``>= 0``.
+        num_envs: the episodes per round.
+    """
+    return base + round_index * num_envs
+
+
 @dataclass(frozen=True)
 class RoundResult:
     """One round of ``B`` episodes.
