@@ -238,6 +238,8 @@ def test_psd_cholesky_per_batch_and_entrywise() -> None:
             assert torch.isfinite(low).all()
             assert torch.equal(low, low.tril())
             torch.testing.assert_close(low @ low.mT, a, rtol=0, atol=1e-12)
+    mixed_bl = la.to_batch_last(mixed, 2, 1).contiguous()
+    assert torch.equal(la.psd_cholesky(mixed_bl), la.semidefinite_cholesky(mixed_bl))
     reference = torch.from_numpy(np.linalg.cholesky(pd.numpy()))
     for entrywise in (False, True):
         low = la.psd_cholesky(la.to_batch_last(pd, 2, 1).contiguous(), entrywise=entrywise)
