@@ -34,6 +34,7 @@ Proposal = Literal["bootstrap", "all_modes"]
 PROPOSALS: tuple[str, ...] = get_args(Proposal)
 #: Fields of :class:`ModeDynamics` that the particles need no copy of when all modes share them.
 _SHAREABLE = ("Q", "H", "d", "R")
+_INVALID_WEIGHTS = "belief: a Kalman update produced NaN (a particle covariance is not PSD)"
 
 
 @runtime_checkable
@@ -605,17 +606,27 @@ class RBPF:
             y: ``(*B', m)`` measurement; observed: ``(*B', m)`` bool or None.
         """
         model = self.model
-        n, m = model.state_dim, model.obs_dim
         y_bl, obs_bl = _measurement(y, observed, mean.ndim - 1)
-        if self.compiled:
-            fused = kernel(_predict_update, compiled=True)
-            return fused(mean, cov, params, shared, y_bl, obs_bl, n=n, m=m, entrywise=True)
-        if observed is not None and not bool(observed.any()):
-            # No measurement at all: update_core would return the prediction and likelihood 0.
-            F, c, Q, *_ = _unpack(params, shared, n, m)
-            mean, cov = predict_core(mean, cov, F, c, Q)
-            return mean, cov, mean.new_zeros(mean.shape[1:])
-        return _predict_update(mean, cov, params, shared, y_bl, obs_bl, n=n, m=m)
+        fused = kernel(_predict_update, compiled=self.compiled)
+        return fused(
+            mean,
+            cov,
+            params,
+            shared,
+            y_bl,
+            obs_bl,
+            n=model.state_dim,
+            m=model.obs_dim,
+            measured=self._measured(observed),
+            entrywise=self.compiled,
+        )
+
+    def _measured(self, observed: Tensor | None) -> bool:
+        """Whether a step's kernels run the Kalman update: a compiled step always does (no
+        host synchronization to learn whether anything was measured; the update returns the
+        prediction and likelihood 1 where nothing was), an eager one only if something was
+        measured."""
+        return self.compiled or observed is None or bool(observed.any())
 
     def _step_bootstrap(
         self,
@@ -630,30 +641,35 @@ class RBPF:
     ) -> RBPFBelief:
         model, N = self.model, self.num_particles
         batch, nb = belief.batch_shape, len(belief.batch_shape)
-        # Sample m_t ~ p(m_t | particle) by inverse CDF (no gradient through the draw).
-        cdf = normalized_cdf(rows.detach())  # (*B, N, K)
         draw = torch.rand(
             (*batch, N, 1), dtype=torch.float64, device=model.device, generator=generator
         )
-        modes = search_cdf(cdf, draw).squeeze(-1)
-        mean, cov, log_lik = self._kalman(
-            la.to_batch_last(belief.gaussians.mean, 1, nb + 1),
-            la.to_batch_last(belief.gaussians.cov, 2, nb + 1),
-            _select(packed, modes),
+        y_bl, obs_bl = _measurement(y, observed, nb + 1)
+        g = belief.gaussians
+        core = kernel(_bootstrap_core, compiled=self.compiled)
+        modes, log_w, mean, cov, log_evidence, history, dead, resample, flags = core(
+            draw,
+            rows,
+            packed,
             shared,
-            y,
-            observed,
+            la.to_batch_last(g.mean, 1, nb + 1),
+            la.to_batch_last(g.cov, 2, nb + 1),
+            y_bl,
+            obs_bl,
+            extra,
+            belief.log_weights,
+            belief.log_evidence,
+            belief.history,
+            n=model.state_dim,
+            m=model.obs_dim,
+            measured=self._measured(observed),
+            entrywise=self.compiled,
+            log_ess_bound=-math.log(max(self.ess_threshold * N, 1e-300)),
         )
-        log_w = belief.log_weights + log_lik
-        if extra is not None:
-            log_w = log_w + extra.expand(*batch, extra.shape[-1]).gather(-1, modes)
-        log_w, log_evidence, dead, any_dead = _normalize(log_w, belief.log_evidence)
-        history = torch.cat([modes.unsqueeze(-1), belief.history[..., :-1]], -1)
-        # ESS = 1 / Σ w² < threshold · N, in log space
-        resample = torch.logsumexp(2.0 * log_w, -1) > -math.log(max(self.ess_threshold * N, 1e-300))
-        if any_dead:
-            resample = resample & ~dead
-        if bool(resample.any()):
+        invalid, any_dead, any_resample = flags.tolist()  # the step's one host synchronization
+        if invalid:
+            raise ValueError(_INVALID_WEIGHTS)
+        if any_resample:
             index = resample_indices(log_w, N, self.resampling, generator)
             identity = torch.arange(N, device=index.device)
             index = torch.where(resample.unsqueeze(-1), index, identity)
@@ -879,19 +895,87 @@ def _predict_update(
     *,
     n: int,
     m: int,
+    measured: bool = True,
     entrywise: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Kalman predict + update under the packed per-particle ``params`` (see
     :meth:`RBPF._kalman`; ``y`` and ``observed`` batch-last, :func:`_measurement`).
 
-    ``entrywise`` factors the predicted covariances per particle: no host synchronization,
-    so the compiled form is one kernel (see :func:`update_core`).
+    ``measured=False`` predicts only (likelihood 1: nothing was measured). ``entrywise``
+    factors the predicted covariances per particle: no host synchronization, so the compiled
+    form is one kernel (see :func:`update_core`).
     """
     F, c, Q, H, d, R = _unpack(params, shared, n, m)
+    if not measured:
+        mean, cov = predict_core(mean, cov, F, c, Q)
+        return mean, cov, mean.new_zeros(mean.shape[1:])
     # update_core reads the lower triangle only, except that entries without a measurement
     # keep the predicted covariance as it is: symmetrize only then.
     mean, cov = predict_core(mean, cov, F, c, Q, symmetric=observed is not None)
     return update_core(mean, cov, y, H, d, R, observed, entrywise=entrywise)
+
+
+def _bootstrap_core(
+    draw: Tensor,
+    rows: Tensor,
+    packed: Tensor,
+    shared: dict[str, Tensor],
+    mean: Tensor,
+    cov: Tensor,
+    y: Tensor,
+    observed: Tensor | None,
+    extra: Tensor | None,
+    log_weights: Tensor,
+    log_evidence: Tensor,
+    history: Tensor,
+    *,
+    n: int,
+    m: int,
+    measured: bool,
+    entrywise: bool,
+    log_ess_bound: float,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """A bootstrap step up to resampling, without host synchronization (compiled: one kernel).
+
+    Args:
+        draw: ``(*B, N, 1)`` float64 uniforms in ``[0, 1)``; rows: ``(*B, N, K)`` the
+            particles' next-mode probabilities.
+        packed, shared: the modes' dynamics (:meth:`RBPF._packed_dynamics`).
+        mean: ``(n, *B, N)``; cov: ``(n, n, *B, N)``: the particles, batch-last.
+        y, observed: batch-last (:func:`_measurement`); extra: ``(*B', K)`` or None.
+        log_weights: ``(*B, N)``; log_evidence: ``(*B,)``; history: ``(*B, N, L + 1)``.
+        n, m, measured, entrywise: as in :func:`_predict_update`.
+        log_ess_bound: resample where ``log Σ w² >`` this (``-log(threshold · N)``).
+
+    Returns:
+        The new modes, normalized log-weights, batch-last mean and covariance, evidence and
+        history, ``dead (*B)`` (every weight zero: placeholders, see :func:`_normalized`),
+        ``resample (*B)`` (ESS below the threshold, not dead) and ``flags (3,)`` bool: any
+        NaN/+inf increment, any dead, any resample.
+    """
+    # Sample m_t ~ p(m_t | particle) by inverse CDF (no gradient through the draw).
+    modes = search_cdf(normalized_cdf(rows.detach()), draw).squeeze(-1)
+    mean, cov, log_lik = _predict_update(
+        mean,
+        cov,
+        _select(packed, modes),
+        shared,
+        y,
+        observed,
+        n=n,
+        m=m,
+        measured=measured,
+        entrywise=entrywise,
+    )
+    log_w = log_weights + log_lik
+    if extra is not None:
+        log_w = log_w + extra.expand(*log_w.shape[:-1], extra.shape[-1]).gather(-1, modes)
+    log_w, log_evidence, dead, invalid = _normalized(log_w, log_evidence)
+    history = torch.cat([modes.unsqueeze(-1), history[..., :-1]], -1)
+    # ESS = 1 / Σ w² < threshold · N, in log space
+    resample = (torch.logsumexp(2.0 * log_w, -1) > log_ess_bound) & ~dead
+    flags = torch.stack([invalid.any(), dead.any(), resample.any()])
+    return modes, log_w, mean, cov, log_evidence, history, dead, resample, flags
 
 
 def _select(packed: Tensor, modes: Tensor) -> Tensor:
@@ -954,26 +1038,36 @@ def _measurement(
     return y_bl, la.to_batch_last(observed, 1, batch_ndim)
 
 
-def _normalize(log_w: Tensor, log_evidence: Tensor) -> tuple[Tensor, Tensor, Tensor, bool]:
-    """Normalize incremental log-weights ``(*B, M)`` and accumulate the evidence ``(*B,)``.
+def _normalized(log_w: Tensor, log_evidence: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Normalize incremental log-weights ``(*B, M)`` and accumulate the evidence ``(*B,)``,
+    without host synchronization.
 
-    Returns ``(log_w, log_evidence, dead, any_dead)``: where every weight is zero (``dead``),
-    the log-weights are replaced by a uniform placeholder (the caller resets the entry) and
-    the evidence becomes ``-inf``; gradients stay finite everywhere. ``any_dead`` is
-    ``dead.any()``, known without another host synchronization.
+    Returns ``(log_w, log_evidence, dead, invalid)``: where every weight is zero (``dead``),
+    the log-weights are a uniform placeholder (the caller resets the entry) and the evidence
+    is ``-inf``, gradients staying finite everywhere; ``invalid`` flags a NaN or ``+inf`` sum
+    (the caller raises).
     """
     increment = torch.logsumexp(log_w, -1)
     dead = torch.isneginf(increment)
-    if not bool(torch.isfinite(increment).all()):
-        if bool(torch.isnan(increment).any() | torch.isposinf(increment).any()):
-            raise ValueError(
-                "belief: a Kalman update produced NaN (a particle covariance is not PSD)"
-            )
-        log_w = torch.where(dead.unsqueeze(-1), 0.0, log_w)
-        increment = torch.logsumexp(log_w, -1)
-        log_evidence = torch.where(dead, -math.inf, log_evidence + increment)
-        return log_w - increment.unsqueeze(-1), log_evidence, dead, True
-    return log_w - increment.unsqueeze(-1), log_evidence + increment, dead, False
+    invalid = torch.isnan(increment) | torch.isposinf(increment)
+    # Summed again without the dead entries' -inf (the same numbers elsewhere), so that the
+    # gradient of the logsumexp is finite.
+    log_w = torch.where(dead.unsqueeze(-1), 0.0, log_w)
+    increment = torch.logsumexp(log_w, -1)
+    log_evidence = torch.where(dead, -math.inf, log_evidence + increment)
+    return log_w - increment.unsqueeze(-1), log_evidence, dead, invalid
+
+
+def _normalize(log_w: Tensor, log_evidence: Tensor) -> tuple[Tensor, Tensor, Tensor, bool]:
+    """:func:`_normalized` with its flags read (one host synchronization): raises on NaN.
+
+    Returns ``(log_w, log_evidence, dead, any_dead)``.
+    """
+    log_w, log_evidence, dead, invalid = _normalized(log_w, log_evidence)
+    any_invalid, any_dead = torch.stack([invalid.any(), dead.any()]).tolist()
+    if any_invalid:
+        raise ValueError(_INVALID_WEIGHTS)
+    return log_w, log_evidence, dead, bool(any_dead)
 
 
 def _gather_states(index: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
