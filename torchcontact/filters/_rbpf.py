@@ -641,16 +641,18 @@ class RBPF:
     ) -> RBPFBelief:
         model, N = self.model, self.num_particles
         batch, nb = belief.batch_shape, len(belief.batch_shape)
+        # Sample m_t ~ p(m_t | particle) by inverse CDF (no gradient through the draw).
+        cdf = normalized_cdf(rows.detach())  # (*B, N, K)
         draw = torch.rand(
             (*batch, N, 1), dtype=torch.float64, device=model.device, generator=generator
         )
+        modes = search_cdf(cdf, draw).squeeze(-1)
         y_bl, obs_bl = _measurement(y, observed, nb + 1)
         g = belief.gaussians
         core = kernel(_bootstrap_core, compiled=self.compiled)
-        modes, log_w, mean, cov, log_evidence, history, dead, resample, flags = core(
-            draw,
-            rows,
-            packed,
+        log_w, mean, cov, log_evidence, history, dead, resample, flags = core(
+            modes,
+            _select(packed, modes),
             shared,
             la.to_batch_last(g.mean, 1, nb + 1),
             la.to_batch_last(g.cov, 2, nb + 1),
@@ -916,9 +918,8 @@ def _predict_update(
 
 
 def _bootstrap_core(
-    draw: Tensor,
-    rows: Tensor,
-    packed: Tensor,
+    modes: Tensor,
+    params: Tensor,
     shared: dict[str, Tensor],
     mean: Tensor,
     cov: Tensor,
@@ -934,13 +935,15 @@ def _bootstrap_core(
     measured: bool,
     entrywise: bool,
     log_ess_bound: float,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """A bootstrap step up to resampling, without host synchronization (compiled: one kernel).
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """A bootstrap step from the sampled modes up to resampling, without host
+    synchronization (compiled: one kernel).
 
     Args:
-        draw: ``(*B, N, 1)`` float64 uniforms in ``[0, 1)``; rows: ``(*B, N, K)`` the
-            particles' next-mode probabilities.
-        packed, shared: the modes' dynamics (:meth:`RBPF._packed_dynamics`).
+        modes: ``(*B, N)`` the particles' new modes; params: ``(D, *B, N)`` their packed
+            dynamics (:func:`_select`, given rather than gathered here: the compiled loops
+            vectorize over contiguous parameters, not over indirect loads); shared: the
+            fields every mode shares.
         mean: ``(n, *B, N)``; cov: ``(n, n, *B, N)``: the particles, batch-last.
         y, observed: batch-last (:func:`_measurement`); extra: ``(*B', K)`` or None.
         log_weights: ``(*B, N)``; log_evidence: ``(*B,)``; history: ``(*B, N, L + 1)``.
@@ -948,17 +951,15 @@ def _bootstrap_core(
         log_ess_bound: resample where ``log Σ w² >`` this (``-log(threshold · N)``).
 
     Returns:
-        The new modes, normalized log-weights, batch-last mean and covariance, evidence and
-        history, ``dead (*B)`` (every weight zero: placeholders, see :func:`_normalized`),
-        ``resample (*B)`` (ESS below the threshold, not dead) and ``flags (3,)`` bool: any
-        NaN/+inf increment, any dead, any resample.
+        The normalized log-weights, batch-last mean and covariance, evidence and history,
+        ``dead (*B)`` (every weight zero: placeholders, see :func:`_normalized`), ``resample
+        (*B)`` (ESS below the threshold, not dead) and ``flags (3,)`` bool: any NaN/+inf
+        increment, any dead, any resample.
     """
-    # Sample m_t ~ p(m_t | particle) by inverse CDF (no gradient through the draw).
-    modes = search_cdf(normalized_cdf(rows.detach()), draw).squeeze(-1)
     mean, cov, log_lik = _predict_update(
         mean,
         cov,
-        _select(packed, modes),
+        params,
         shared,
         y,
         observed,
@@ -975,7 +976,7 @@ def _bootstrap_core(
     # ESS = 1 / Σ w² < threshold · N, in log space
     resample = (torch.logsumexp(2.0 * log_w, -1) > log_ess_bound) & ~dead
     flags = torch.stack([invalid.any(), dead.any(), resample.any()])
-    return modes, log_w, mean, cov, log_evidence, history, dead, resample, flags
+    return log_w, mean, cov, log_evidence, history, dead, resample, flags
 
 
 def _select(packed: Tensor, modes: Tensor) -> Tensor:
