@@ -181,3 +181,20 @@ def test_views_of_different_bases_reuse_one_compiled_kernel() -> None:
     for a, b in inputs:
         torch.testing.assert_close(compiled(a, b), _scaled_sum(a, b))
     assert counters["frames"]["ok"] == before  # compiled once, before the loop
+
+
+def _doubled(a: torch.Tensor) -> torch.Tensor:
+    return 2.0 * a
+
+
+def test_more_variants_than_dynamo_default_limit_all_compile() -> None:
+    """Twelve variants of one kernel (each rank a graph of its own) all compile: dynamo's
+    default limit (8) would run the last four eagerly."""
+    from torch._dynamo.utils import counters
+
+    compiled = kernel(_doubled, compiled=True)
+    before = counters["stats"]["unique_graphs"]
+    for rank in range(1, 13):
+        a = torch.ones((1,) * rank)
+        torch.testing.assert_close(compiled(a), 2.0 * a)
+    assert counters["stats"]["unique_graphs"] == before + 12

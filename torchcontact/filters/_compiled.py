@@ -17,7 +17,13 @@ What it costs:
 * the results equal the eager kernels' to rounding, not to the bit (fused loops sum in
   another order): about 1e-6 relative in float32, 1e-14 in float64.
 
-Each kernel is compiled once per process and shared by every filter and model that asks.
+Each kernel is compiled once per process and shared by every filter and model that asks;
+each of its variants (dtype, particle count below and above the sizes where the unrolled
+algebra changes its summation, models with and without shared noise) is one entry of
+dynamo's cache for the kernel. Past ``torch._dynamo.config.recompile_limit`` entries (8 by
+default) dynamo runs new variants eagerly, which a process with a few filters reaches (the
+benchmark's eight settings did): the first compiled kernel raises the limit to
+:data:`RECOMPILE_LIMIT` for the process.
 """
 
 from __future__ import annotations
@@ -30,9 +36,14 @@ import torch
 
 _Kernel = TypeVar("_Kernel", bound=Callable[..., Any])
 
+#: Variants of one kernel compiled before dynamo runs new ones eagerly (at least).
+RECOMPILE_LIMIT = 64
+
 
 @functools.cache
 def _compile(fn: Callable[..., Any]) -> Callable[..., Any]:
+    config = torch._dynamo.config
+    config.recompile_limit = max(config.recompile_limit, RECOMPILE_LIMIT)
     compiled = torch.compile(fn, dynamic=None)
 
     @functools.wraps(fn)

@@ -453,16 +453,16 @@ class RBPF:
         if mode_log_weight is not None:
             extra = mode_log_weight if extra is None else extra + mode_log_weight
         rows = self._transition_rows(belief, transition, dynamics.transition_rows)
-        # Without gradients to carry, inference mode spares each of the step's few hundred
-        # small operations autograd's bookkeeping (a fifth of the step at N = 1,000); the new
-        # belief's tensors are then copied into ordinary ones.
+        # Without gradients to carry, the step runs without autograd's bookkeeping. (Not in
+        # inference mode: its tensors would reach the next step's compiled kernels as
+        # variants of their inputs that compile anew, up to torch's recompile limit.)
         g, prior = belief.gaussians, belief.prior
         inputs = (packed, *shared.values(), y, rows, extra, belief.log_weights, g.mean, g.cov)
         inputs += (belief.log_evidence, prior.mean, prior.cov)
         tracked = torch.is_grad_enabled() and any(
             value is not None and value.requires_grad for value in inputs
         )
-        with torch.inference_mode(not tracked):
+        with torch.set_grad_enabled(tracked):
             if self.proposal == "bootstrap":
                 new = self._step_bootstrap(
                     belief, packed, shared, y, observed, rows, extra, generator
@@ -471,7 +471,7 @@ class RBPF:
                 new = self._step_all_modes(
                     belief, packed, shared, y, observed, rows, extra, generator
                 )
-        return new if tracked else _ordinary(new)
+        return new
 
     def _transition_rows(
         self, belief: RBPFBelief, transition: Tensor, rows: Tensor | None
@@ -854,22 +854,6 @@ class RBPF:
             raise ValueError(f"u: actions must lie in [0, {actions})")
         shapes.append(("u", u.shape))
         return model.transition[u]
-
-
-def _ordinary(belief: RBPFBelief) -> RBPFBelief:
-    """``belief`` with the tensors an inference-mode step made copied into ordinary ones (the
-    same values and memory layout; the prior is the previous belief's)."""
-    g = belief.gaussians
-    return RBPFBelief(
-        modes=belief.modes.clone(),
-        log_weights=belief.log_weights.clone(),
-        gaussians=unchecked_gaussian(g.mean.clone(), g.cov.clone()),
-        log_evidence=belief.log_evidence.clone(),
-        history=belief.history.clone(),
-        degenerate=belief.degenerate.clone(),
-        prior=belief.prior,
-        num_modes=belief.num_modes,
-    )
 
 
 def _unpack(params: Tensor, shared: dict[str, Tensor], n: int, m: int) -> list[Tensor]:
