@@ -668,7 +668,7 @@ class RBPF:
             entrywise=self.compiled,
             log_ess_bound=-math.log(max(self.ess_threshold * N, 1e-300)),
         )
-        invalid, any_dead, any_resample = flags.tolist()  # the step's one host synchronization
+        invalid, any_dead, any_resample = flags.tolist()  # one host synchronization for all three
         if invalid:
             raise ValueError(_INVALID_WEIGHTS)
         if any_resample:
