@@ -398,8 +398,9 @@ def test_noise_and_measurement_shared_by_every_mode_give_the_same_step(proposal:
 
 
 def test_steps_without_gradients_return_ordinary_tensors() -> None:
-    # Without a gradient to carry, the step runs in inference mode; what it returns must still
-    # be ordinary tensors (in-place updates and autograd work on them), laid out as before.
+    # Without a gradient to carry, the step runs without autograd; what it returns must be
+    # ordinary tensors, not inference ones (in-place updates and autograd work on them, and the
+    # next compiled step sees the same kind of input), laid out as before.
     problem = _problem()
     belief = _run(RBPF(problem.model(), 16), problem)
     g = belief.gaussians
