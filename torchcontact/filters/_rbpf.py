@@ -588,39 +588,6 @@ class RBPF:
             raise ValueError("model: mode_dynamics() returned NaN or inf")
         return packed, shared, log_weight
 
-    def _kalman(
-        self,
-        mean: Tensor,
-        cov: Tensor,
-        params: Tensor,
-        shared: dict[str, Tensor],
-        y: Tensor,
-        observed: Tensor | None,
-    ) -> tuple[Tensor, Tensor, Tensor]:
-        """Kalman predict + update of batch-last particles under per-particle model parameters.
-
-        Args:
-            mean: ``(n, *P)``; cov: ``(n, n, *P)`` (``*P`` = the particle batch dims).
-            params: ``(D, *P')`` packed per-mode fields (see :meth:`_packed_dynamics`).
-            shared: the fields every mode shares, without batch dims.
-            y: ``(*B', m)`` measurement; observed: ``(*B', m)`` bool or None.
-        """
-        model = self.model
-        y_bl, obs_bl = _measurement(y, observed, mean.ndim - 1)
-        fused = kernel(_predict_update, compiled=self.compiled)
-        return fused(
-            mean,
-            cov,
-            params,
-            shared,
-            y_bl,
-            obs_bl,
-            n=model.state_dim,
-            m=model.obs_dim,
-            measured=self._measured(observed),
-            entrywise=self.compiled,
-        )
-
     def _measured(self, observed: Tensor | None) -> bool:
         """Whether a step's kernels run the Kalman update: a compiled step always does (no
         host synchronization to learn whether anything was measured; the update returns the
@@ -712,7 +679,20 @@ class RBPF:
         # Only the N survivors need the Kalman update: the same operations on the same
         # numbers (in the same memory layouts) as a step of all N·K children does for them.
         mean, cov = _gather_states(parents, mean, cov)
-        mean, cov, _ = self._kalman(mean, cov, _select(packed, modes), shared, y, observed)
+        y_bl, obs_bl = _measurement(y, observed, nb + 1)
+        kalman = kernel(_predict_update, compiled=self.compiled)
+        mean, cov, _ = kalman(
+            mean,
+            cov,
+            _select(packed, modes),
+            shared,
+            y_bl,
+            obs_bl,
+            n=self.model.state_dim,
+            m=self.model.obs_dim,
+            measured=self._measured(observed),
+            entrywise=self.compiled,
+        )
         return self._belief(belief, modes, log_w, mean, cov, log_evidence, history, dead, any_dead)
 
     def _children_log_likelihood(
@@ -726,17 +706,18 @@ class RBPF:
     ) -> Tensor:
         """``(*B, N, K)`` predictive log-likelihoods of every particle's ``K`` children.
 
-        The log-likelihood of :meth:`_kalman` on every child without the posterior, from the
+        The log-likelihood of :func:`_predict_update` on every child without the posterior, from the
         leading ``r`` components of the predicted mean and covariance: those that ``H`` reads
         when every mode shares it (the pose of a
         :class:`~torchcontact.filters.PlanarContactModel`), else all. The operations are
-        those of :meth:`_kalman` on the same numbers, so the values are the same (to the bit
+        those of :func:`_predict_update` on the same numbers, so the values are the same (to the bit
         when ``H`` selects components; see :func:`update_log_likelihood` for the exception).
 
         Args:
             mean: ``(n, *B, N)``; cov: ``(n, n, *B, N)``: the particles, batch-last.
             packed: ``(K, D)`` or ``(*B', K, D)`` the modes' packed dynamics.
-            shared, y, observed: as in :meth:`_kalman`.
+            shared: as in :func:`_predict_update`.
+            y: ``(*B', m)`` measurement; observed: ``(*B', m)`` bool or None.
         """
         model = self.model
         n, m, K = model.state_dim, model.obs_dim, model.num_modes
@@ -884,12 +865,21 @@ def _predict_update(
     measured: bool = True,
     entrywise: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Kalman predict + update under the packed per-particle ``params`` (see
-    :meth:`RBPF._kalman`; ``y`` and ``observed`` batch-last, :func:`_measurement`).
+    """Kalman predict + update of batch-last particles under per-particle model parameters.
 
-    ``measured=False`` predicts only (likelihood 1: nothing was measured). ``entrywise``
-    factors the predicted covariances per particle: no host synchronization, so the compiled
-    form is one kernel (see :func:`update_core`).
+    Args:
+        mean: ``(n, *P)``; cov: ``(n, n, *P)`` (``*P`` = the particle batch dims).
+        params: ``(D, *P')`` packed per-mode fields (see :meth:`RBPF._packed_dynamics`).
+        shared: the fields every mode shares, without batch dims.
+        y, observed: the measurement and its used components, batch-last
+            (:func:`_measurement`).
+        n, m: state and measurement sizes.
+        measured: ``False`` predicts only (likelihood 1: nothing was measured).
+        entrywise: factor the predicted covariances per particle: no host synchronization,
+            so the compiled form is one kernel (see :func:`update_core`).
+
+    Returns:
+        ``(mean⁺ (n, *P), cov⁺ (n, n, *P), log_likelihood (*P))``.
     """
     F, c, Q, H, d, R = _unpack(params, shared, n, m)
     if not measured:
