@@ -5,7 +5,8 @@ small tensor operations: the unrolled 6 × 6 Kalman algebra of ``_linalg`` over 
 and the linearization of every contact mode at the belief's mean. On a CPU their cost is the
 dispatch of each operation (microseconds), not the arithmetic. TorchInductor fuses the
 elementwise chains into a few generated C++ loops, which removes most of that cost; the
-batched LAPACK calls of the linearization stay library calls.
+batched LAPACK calls of the linearization stay library calls. The code that calls the loops
+and allocates their buffers is generated in C++ as well (Inductor's ``cpp_wrapper``).
 
 What it costs:
 
@@ -44,7 +45,10 @@ RECOMPILE_LIMIT = 64
 def _compile(fn: Callable[..., Any]) -> Callable[..., Any]:
     config = torch._dynamo.config
     config.recompile_limit = max(config.recompile_limit, RECOMPILE_LIMIT)
-    compiled = torch.compile(fn, dynamic=None)
+    # The C++ wrapper calls the generated kernels and library functions from C++ instead of
+    # a generated Python function: ~0.2 ms less per call of the contact linearization (its
+    # compilation takes about 1.7 times as long).
+    compiled = torch.compile(fn, dynamic=None, options={"cpp_wrapper": True})
 
     @functools.wraps(fn)
     def call(*args: Any, **kwargs: Any) -> Any:
