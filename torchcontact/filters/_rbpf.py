@@ -23,10 +23,9 @@ from torchcontact.filters._kalman import (
 from torchcontact.filters._resampling import (
     RESAMPLING_METHODS,
     ResamplingMethod,
-    draw_uniforms,
-    indices_from_uniforms,
     normalized_cdf,
     optimal_resample_core,
+    resample_indices,
     search_cdf,
 )
 from torchcontact.filters._switching import ModeDynamics
@@ -615,13 +614,10 @@ class RBPF:
             (*batch, N, 1), dtype=torch.float64, device=model.device, generator=generator
         )
         modes = search_cdf(cdf, draw).squeeze(-1)
-        # The resampling's random numbers, drawn whether or not an entry will resample: the
-        # kernel then resamples without waiting for the ESS test's verdict on the host.
-        uniforms = draw_uniforms(self.resampling, batch, N, generator, model.device)
         y_bl, obs_bl = _measurement(y, observed, nb + 1)
         g = belief.gaussians
         core = kernel(_bootstrap_core, compiled=self.compiled)
-        modes, log_w, mean, cov, log_evidence, history, dead, flags = core(
+        log_w, mean, cov, log_evidence, history, dead, resample, flags = core(
             modes,
             _select(packed, modes),
             shared,
@@ -633,17 +629,21 @@ class RBPF:
             belief.log_weights,
             belief.log_evidence,
             belief.history,
-            uniforms,
             n=model.state_dim,
             m=model.obs_dim,
             measured=self._measured(observed),
             entrywise=self.compiled,
             log_ess_bound=-math.log(max(self.ess_threshold * N, 1e-300)),
-            resampling=self.resampling,
         )
-        invalid, any_dead = flags.tolist()  # one host synchronization for both
+        invalid, any_dead, any_resample = flags.tolist()  # one host synchronization for all three
         if invalid:
             raise ValueError(_INVALID_WEIGHTS)
+        if any_resample:
+            index = resample_indices(log_w, N, self.resampling, generator)
+            identity = torch.arange(N, device=index.device)
+            index = torch.where(resample.unsqueeze(-1), index, identity)
+            modes, history, mean, cov = _gather(index, modes, history, mean, cov)
+            log_w = torch.where(resample.unsqueeze(-1), -math.log(N), log_w)
         return self._belief(belief, modes, log_w, mean, cov, log_evidence, history, dead, any_dead)
 
     def _step_all_modes(
@@ -903,16 +903,14 @@ def _bootstrap_core(
     log_weights: Tensor,
     log_evidence: Tensor,
     history: Tensor,
-    uniforms: Tensor,
     *,
     n: int,
     m: int,
     measured: bool,
     entrywise: bool,
     log_ess_bound: float,
-    resampling: str,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """A bootstrap step from the sampled modes on, resampling included, without host
+    """A bootstrap step from the sampled modes up to resampling, without host
     synchronization (compiled: one kernel).
 
     Args:
@@ -923,16 +921,14 @@ def _bootstrap_core(
         mean: ``(n, *B, N)``; cov: ``(n, n, *B, N)``: the particles, batch-last.
         y, observed: batch-last (:func:`_measurement`); extra: ``(*B', K)`` or None.
         log_weights: ``(*B, N)``; log_evidence: ``(*B,)``; history: ``(*B, N, L + 1)``.
-        uniforms: ``(*B, N)`` the random numbers of the resampling (:func:`draw_uniforms`).
         n, m, measured, entrywise: as in :func:`_predict_update`.
         log_ess_bound: resample where ``log Σ w² >`` this (``-log(threshold · N)``).
-        resampling: the resampling method.
 
     Returns:
-        The modes, normalized log-weights, batch-last mean and covariance, evidence and
-        history, resampled (by ``uniforms``) where the ESS fell below the threshold, ``dead
-        (*B)`` (every weight zero: placeholders, see :func:`_normalized`) and ``flags (2,)``
-        bool: any NaN/+inf increment, any dead.
+        The normalized log-weights, batch-last mean and covariance, evidence and history,
+        ``dead (*B)`` (every weight zero: placeholders, see :func:`_normalized`), ``resample
+        (*B)`` (ESS below the threshold, not dead) and ``flags (3,)`` bool: any NaN/+inf
+        increment, any dead, any resample.
     """
     mean, cov, log_lik = _predict_update(
         mean,
@@ -952,15 +948,9 @@ def _bootstrap_core(
     log_w, log_evidence, dead, invalid = _normalized(log_w, log_evidence)
     history = torch.cat([modes.unsqueeze(-1), history[..., :-1]], -1)
     # ESS = 1 / Σ w² < threshold · N, in log space
-    resample = ((torch.logsumexp(2.0 * log_w, -1) > log_ess_bound) & ~dead).unsqueeze(-1)
-    # Indices from every entry's weights, used only where it resamples (the others, NaN
-    # ones included, keep their particles).
-    index = indices_from_uniforms(log_w, resampling, uniforms)
-    index = torch.where(resample, index, torch.arange(modes.shape[-1], device=modes.device))
-    modes, history, mean, cov = _gather(index, modes, history, mean, cov)
-    log_w = torch.where(resample, -math.log(modes.shape[-1]), log_w)
-    flags = torch.stack([invalid.any(), dead.any()])
-    return modes, log_w, mean, cov, log_evidence, history, dead, flags
+    resample = (torch.logsumexp(2.0 * log_w, -1) > log_ess_bound) & ~dead
+    flags = torch.stack([invalid.any(), dead.any(), resample.any()])
+    return log_w, mean, cov, log_evidence, history, dead, resample, flags
 
 
 def _select(packed: Tensor, modes: Tensor) -> Tensor:

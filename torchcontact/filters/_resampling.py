@@ -32,19 +32,16 @@ def inverse_cdf(weights: Tensor, u: Tensor) -> Tensor:
     return search_cdf(normalized_cdf(weights), u)
 
 
-def draw_uniforms(
+def _uniforms(
     method: str,
     batch: torch.Size,
     num: int,
     generator: torch.Generator | None,
     device: torch.device,
 ) -> Tensor:
-    """The random numbers of one draw of ``num`` indices per row by ``method``: ``(*B, num)``
-    float64 in ``[0, 1)``, the strata's points for ``"stratified"`` and ``"systematic"`` (one
-    draw per row), plain uniforms for ``"multinomial"`` and for the random part of
-    ``"residual"``. :func:`indices_from_uniforms` turns them into indices."""
+    """``(*B, num)`` float64 points in ``[0, 1)`` for the given scheme (not residual)."""
     kw: dict[str, Any] = {"dtype": torch.float64, "device": device, "generator": generator}
-    if method in ("multinomial", "residual"):
+    if method == "multinomial":
         return torch.rand((*batch, num), **kw)
     strata = torch.arange(num, dtype=torch.float64, device=device)
     if method == "stratified":
@@ -52,35 +49,25 @@ def draw_uniforms(
     return (strata + torch.rand((*batch, 1), **kw)) / num  # systematic
 
 
-def indices_from_uniforms(log_weights: Tensor, method: str, u: Tensor) -> Tensor:
-    """Ancestor indices ``(*B, M)`` drawn by ``method`` with the random numbers ``u (*B, M)``
-    of :func:`draw_uniforms`; deterministic given ``u``, without host synchronization (every
-    row of ``log_weights (*B, N)`` must have a finite entry)."""
-    lw = log_weights.detach().to(torch.float64)
-    weights = torch.exp(lw - lw.amax(-1, keepdim=True))
-    if method != "residual":
-        return inverse_cdf(weights, u)
-    num_samples = u.shape[-1]
-    scaled = weights / weights.sum(-1, keepdim=True) * num_samples
-    copies = torch.floor(scaled)
-    remainder = scaled - copies
-    num_copies = copies.sum(-1, keepdim=True)
-    slots = torch.arange(num_samples, dtype=torch.float64, device=lw.device)
-    slots = slots.expand(*lw.shape[:-1], -1)
-    deterministic = torch.searchsorted(copies.cumsum(-1), slots.contiguous(), right=True)
-    remainder = torch.where(remainder.sum(-1, keepdim=True) > 0, remainder, weights)
-    random = inverse_cdf(remainder, u)
-    n = lw.shape[-1]
-    return torch.where(slots < num_copies, deterministic.clamp(max=n - 1), random)
-
-
 def resample_indices(
     log_weights: Tensor, num_samples: int, method: str, generator: torch.Generator | None
 ) -> Tensor:
     """Unvalidated core of :func:`resample` (every row must have a finite log-weight)."""
-    batch, device = log_weights.shape[:-1], log_weights.device
-    u = draw_uniforms(method, batch, num_samples, generator, device)
-    return indices_from_uniforms(log_weights, method, u)
+    lw = log_weights.detach().to(torch.float64)
+    weights = torch.exp(lw - lw.amax(-1, keepdim=True))
+    batch, device = lw.shape[:-1], lw.device
+    if method != "residual":
+        return inverse_cdf(weights, _uniforms(method, batch, num_samples, generator, device))
+    scaled = weights / weights.sum(-1, keepdim=True) * num_samples
+    copies = torch.floor(scaled)
+    remainder = scaled - copies
+    num_copies = copies.sum(-1, keepdim=True)
+    slots = torch.arange(num_samples, dtype=torch.float64, device=device).expand(*batch, -1)
+    deterministic = torch.searchsorted(copies.cumsum(-1), slots.contiguous(), right=True)
+    remainder = torch.where(remainder.sum(-1, keepdim=True) > 0, remainder, weights)
+    random = inverse_cdf(remainder, _uniforms("multinomial", batch, num_samples, generator, device))
+    n = lw.shape[-1]
+    return torch.where(slots < num_copies, deterministic.clamp(max=n - 1), random)
 
 
 def _check_log_weights(log_weights: object, name: str) -> Tensor:
