@@ -106,8 +106,11 @@ fig.savefig(OUT / "05_environment.png", dpi=80)
 # the insertion depth, −0.01 per step, −1 for dropping the peg. The learner also sees the
 # potential-based shaping term `γΦ(s′) − Φ(s)` with `Φ` the negative distance to the goal,
 # which leaves the optimal policy unchanged (Ng et al. 1999) but tells the learner where the
-# goal lies. With `n` planning steps per real step, Dyna-Q replays simulated transitions drawn
-# from its manipulation graph, and after each round it runs value iteration on the graph.
+# goal lies. Here it is weak (2 reward per metre; the training script's default is 5): the
+# stronger the shaping, the less there is for planning to propagate, and the closer plain
+# Q-learning comes to Dyna-Q. With `n` planning steps per real step, Dyna-Q replays simulated
+# transitions drawn from its manipulation graph, and after each round it runs value iteration
+# on the graph.
 # Both are *pessimistic*: a pair `(s, a)` seen `N` times has its model reward lowered by
 # `0.05 / √N`. Without that, the maximum over actions of values estimated from pairs seen once
 # or twice favours the lucky ones, the bias compounds along chains of rarely visited cells, and
@@ -118,7 +121,7 @@ fig.savefig(OUT / "05_environment.png", dpi=80)
 # %%
 B = 4 if FAST else 32
 rounds = 2 if FAST else 16
-shaping = PegLearning().potential_shaping()
+shaping = PegLearning(shaping=2.0).potential_shaping()
 env = PegInHole2DVector(num_envs=B, config=config)
 evaluation_env = PegInHole2DVector(num_envs=B, config=config)
 curves: dict[int, list[float]] = {}
