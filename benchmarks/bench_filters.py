@@ -2,8 +2,10 @@
 
 Run ``python benchmarks/bench_filters.py``. Prints a markdown table and writes
 ``benchmarks/results/bench_filters.json``. Single-threaded (``torch.set_num_threads(1)``), so
-the numbers compare algorithms rather than core counts. Each time is the best of several
-repeats (the least-disturbed run on a shared machine); the JSON also keeps the median.
+the numbers compare algorithms rather than core counts, and pinned to the CPU where a probe
+loop runs fastest (``_timing.pin_to_quietest_cpu``: on a shared virtual machine one CPU can be
+slower than another for minutes). Each time is the best of several repeats (the
+least-disturbed run); the JSON also keeps the median.
 
 1. Kalman predict + update (with log-likelihood) of 10,000 independent filters, 6-dim state,
    3-dim measurement, shared model matrices, float64, all checked to give the same posterior
@@ -51,6 +53,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from _timing import pin_to_quietest_cpu  # benchmarks/ is on sys.path when run as a script
 
 from torchcontact.filters import (
     RBPF,
@@ -431,14 +434,16 @@ def machine() -> dict[str, Any]:
 
 def main() -> None:
     torch.set_num_threads(1)
-    info = machine()
+    pinned = pin_to_quietest_cpu()
+    info = machine() | pinned
     kalman = bench_kalman()
     rbpf = bench_rbpf()
     contact, contact_facts = bench_rbpf_contact()
 
     print(
         f"# bench_filters ({info['cpu']}, {info['cpu_count']} cores, 1-min load "
-        f"{info['load_average_1min']:.1f}; torch {info['torch']}, 1 thread)\n"
+        f"{info['load_average_1min']:.1f}; torch {info['torch']}, 1 thread, pinned to CPU "
+        f"{info['pinned_cpu']} of probe speeds {info['probe_ns']} ns)\n"
     )
     print(
         f"Times are per step: best wall time of 5 runs ({CONTACT_REPEATS} for the contact model; "

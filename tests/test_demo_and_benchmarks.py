@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import json
+import os
 import re
 import subprocess
 import sys
 from pathlib import Path
+
+import pytest
 
 from torchcontact.demo import DemoArgs, run
 
@@ -33,3 +37,22 @@ def test_contact_benchmark_quick_mode_prints_its_table() -> None:
     )
     rows = [line for line in result.stdout.splitlines() if line.startswith("| 100 |")]
     assert len(rows) == 4
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no CPU affinity here")
+def test_benchmarks_pin_themselves_to_the_fastest_probed_cpu() -> None:
+    # In a child process: pinning changes the affinity of the process that asks.
+    code = (
+        "import json, os, sys; sys.path.insert(0, 'benchmarks');"
+        "from _timing import pin_to_quietest_cpu;"
+        "before = sorted(os.sched_getaffinity(0)); pinned = pin_to_quietest_cpu(probes=2);"
+        "print(json.dumps([before, sorted(os.sched_getaffinity(0)), pinned]))"
+    )
+    result = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=ROOT
+    )
+    before, after, pinned = json.loads(result.stdout)
+    probed = {int(cpu): ns for cpu, ns in pinned["probe_ns"].items()}
+    assert sorted(probed) == before
+    assert all(ns > 0 for ns in probed.values())
+    assert after == [pinned["pinned_cpu"]] == [min(probed, key=probed.__getitem__)]
