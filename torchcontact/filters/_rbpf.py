@@ -663,7 +663,10 @@ class RBPF:
         # their predictive likelihoods only, not their posteriors.
         mean = la.to_batch_last(belief.gaussians.mean, 1, nb + 1)  # (n, *B, N)
         cov = la.to_batch_last(belief.gaussians.cov, 2, nb + 1)
-        log_lik = self._children_log_likelihood(mean, cov, packed, shared, y, observed)
+        measured = self._measured(observed)
+        log_lik = self._children_log_likelihood(
+            mean, cov, packed, shared, y, observed, measured=measured
+        )
         log_trans = torch.log(rows)  # (*B, N, K): log p(m_t = k | particle i)
         log_w = belief.log_weights.unsqueeze(-1) + log_trans + log_lik
         if extra is not None:
@@ -690,7 +693,7 @@ class RBPF:
             obs_bl,
             n=self.model.state_dim,
             m=self.model.obs_dim,
-            measured=self._measured(observed),
+            measured=measured,
             entrywise=self.compiled,
         )
         return self._belief(belief, modes, log_w, mean, cov, log_evidence, history, dead, any_dead)
@@ -703,6 +706,8 @@ class RBPF:
         shared: dict[str, Tensor],
         y: Tensor,
         observed: Tensor | None,
+        *,
+        measured: bool,
     ) -> Tensor:
         """``(*B, N, K)`` predictive log-likelihoods of every particle's ``K`` children.
 
@@ -718,10 +723,11 @@ class RBPF:
             packed: ``(K, D)`` or ``(*B', K, D)`` the modes' packed dynamics.
             shared: as in :func:`_predict_update`.
             y: ``(*B', m)`` measurement; observed: ``(*B', m)`` bool or None.
+            measured: :meth:`_measured` of ``observed``; ``False``: likelihood 1.
         """
         model = self.model
         n, m, K = model.state_dim, model.obs_dim, model.num_modes
-        if not self.compiled and observed is not None and not bool(observed.any()):
+        if not measured:
             return mean.new_zeros(*mean.shape[1:], K)  # no measurement: likelihood 1
         nb, lead = mean.ndim - 2, packed.ndim - 2
         r = n
