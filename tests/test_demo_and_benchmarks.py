@@ -56,3 +56,20 @@ def test_benchmarks_pin_themselves_to_the_fastest_probed_cpu() -> None:
     assert sorted(probed) == before
     assert all(ns > 0 for ns in probed.values())
     assert after == [pinned["pinned_cpu"]] == [min(probed, key=probed.__getitem__)]
+
+
+def test_interleaved_timing_runs_every_setting_in_turn(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.syspath_prepend(str(ROOT / "benchmarks"))
+    from bench_filters import interleaved_best_of
+
+    calls: list[str] = []
+    clock = iter(range(1_000))  # a fake wall clock: every reading advances it by one second
+    monkeypatch.setattr("bench_filters.time.perf_counter", lambda: float(next(clock)))
+    timings = interleaved_best_of(
+        [(lambda: calls.append("a"), 2), (lambda: calls.append("b"), 1)], rounds=3
+    )
+    # Each round: one untimed call, then the timed ones, of every setting in turn.
+    assert "".join(calls) == "aaabb" * 3
+    # Each run reads the clock twice in a row: 1 s per run, over its number of calls.
+    assert [t["best_s"] for t in timings] == [0.5, 1.0]
+    assert [t["median_s"] for t in timings] == [0.5, 1.0]

@@ -415,6 +415,57 @@ def test_mode_dynamics_with_the_wrong_batch_or_nan_are_rejected() -> None:
     weighted = RBPF(_Weighted(problem.model(), ()), 16)  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="mode_log_weight"):
         weighted.step(weighted.init(_prior(), batch_shape=(3,)), torch.zeros(1, dtype=F64))
+
+
+@pytest.mark.parametrize("proposal", ["bootstrap", "all_modes"])
+@pytest.mark.parametrize(
+    ("field", "value", "message"),
+    [
+        ("F", math.inf, r"mode_dynamics\(\) returned NaN or inf"),
+        ("R", math.nan, r"mode_dynamics\(\) returned NaN or inf"),
+        ("mode_log_weight", math.nan, "mode_log_weight: contains NaN or \\+inf"),
+        ("mode_log_weight", math.inf, "mode_log_weight: contains NaN or \\+inf"),
+    ],
+)
+def test_bad_values_of_one_mode_are_named_whichever_mode_is_drawn(
+    proposal: str, field: str, value: float, message: str
+) -> None:
+    # The values are tested with the step's flags: a bad entry in the last mode (which no
+    # particle may draw) must still be found, and a -inf mode log-weight is allowed.
+    problem = _problem()
+    K = problem.model().num_modes
+
+    class _Bad(_BatchedLinear):
+        def mode_dynamics(self, belief: RBPFBelief, control: object) -> ModeDynamics:
+            d = super().mode_dynamics(belief, control)
+            if field == "mode_log_weight":
+                weight = torch.zeros(K, dtype=F64)
+                weight[0], weight[-1] = -math.inf, value
+                return replace(d, mode_log_weight=weight)
+            bad = getattr(d, field).clone()
+            bad[-1].view(-1)[0] = value
+            return replace(d, **{field: bad})
+
+    rbpf = RBPF(_Bad(problem.model(), ()), 16, proposal=proposal)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=message):
+        rbpf.step(rbpf.init(_prior()), torch.zeros(1, dtype=F64))
+
+
+@pytest.mark.parametrize("proposal", ["bootstrap", "all_modes"])
+def test_a_minus_inf_mode_log_weight_rules_the_mode_out(proposal: str) -> None:
+    problem = _problem()
+    K = problem.model().num_modes
+
+    class _RuledOut(_BatchedLinear):
+        def mode_dynamics(self, belief: RBPFBelief, control: object) -> ModeDynamics:
+            weight = torch.zeros(K, dtype=F64)
+            weight[0] = -math.inf
+            return replace(super().mode_dynamics(belief, control), mode_log_weight=weight)
+
+    rbpf = RBPF(_RuledOut(problem.model(), ()), 64, proposal=proposal)  # type: ignore[arg-type]
+    belief = rbpf.step(rbpf.init(_prior()), torch.zeros(1, dtype=F64))
+    assert bool((belief.mode_marginals()[..., 0] == 0).all())
+    assert bool(belief.log_evidence.isfinite().all())
     shared = RBPF(problem.model(), 16)
     with pytest.raises(ValueError, match="control"):
         shared.step(shared.init(_prior()), torch.zeros(1, dtype=F64), control=1.0)

@@ -450,27 +450,19 @@ class RBPF:
                 f"model: mode_dynamics returned {type(dynamics).__name__}, not ModeDynamics"
             )
         packed, shared, mode_log_weight = self._packed_dynamics(belief, dynamics)
-        if mode_log_weight is not None:
-            extra = mode_log_weight if extra is None else extra + mode_log_weight
         rows = self._transition_rows(belief, transition, dynamics.transition_rows)
         # Without gradients to carry, the step runs without autograd's bookkeeping. (Not in
         # inference mode: its tensors would reach the next step's compiled kernels as
         # variants of their inputs that compile anew, up to torch's recompile limit.)
         g, prior = belief.gaussians, belief.prior
-        inputs = (packed, *shared.values(), y, rows, extra, belief.log_weights, g.mean, g.cov)
-        inputs += (belief.log_evidence, prior.mean, prior.cov)
+        inputs = (packed, *shared.values(), mode_log_weight, y, rows, extra, belief.log_weights)
+        inputs += (g.mean, g.cov, belief.log_evidence, prior.mean, prior.cov)
         tracked = torch.is_grad_enabled() and any(
             value is not None and value.requires_grad for value in inputs
         )
         with torch.set_grad_enabled(tracked):
-            if self.proposal == "bootstrap":
-                new = self._step_bootstrap(
-                    belief, packed, shared, y, observed, rows, extra, generator
-                )
-            else:
-                new = self._step_all_modes(
-                    belief, packed, shared, y, observed, rows, extra, generator
-                )
+            step = self._step_bootstrap if self.proposal == "bootstrap" else self._step_all_modes
+            new = step(belief, packed, shared, mode_log_weight, y, observed, rows, extra, generator)
         return new
 
     def _transition_rows(
@@ -512,7 +504,8 @@ class RBPF:
             unless every mode shares it; the shared ones (a model's constant noise and
             measurement, given as ``(K, ...)`` views of one matrix) by name, without the mode
             dim (the particles need no copy of them); and the optional
-            ``mode_log_weight (*B', K)``.
+            ``mode_log_weight (*B', K)``. Shapes and dtypes are checked here, values by the
+            step (:func:`_dynamics_flags`).
         """
         model = self.model
         K, n, m = model.num_modes, model.state_dim, model.obs_dim
@@ -577,15 +570,8 @@ class RBPF:
                     f"{field} batch {tuple(log_weight.shape[:-1])} does not broadcast to the "
                     f"belief's batch {tuple(belief.batch_shape)}"
                 )
-        # One test (one host synchronization) for every value: finite, except that a log-weight
-        # may be -inf (clamped away here; NaN and +inf stay).
-        checked = [packed.flatten(), *(value.flatten() for value in shared.values())]
-        if log_weight is not None:
-            checked.append(log_weight.clamp(min=0.0).flatten())
-        if not bool(torch.isfinite(torch.cat(checked)).all()):
-            if log_weight is not None and not bool(checked[-1].isfinite().all()):
-                raise ValueError(f"{field}: contains NaN or +inf")
-            raise ValueError("model: mode_dynamics() returned NaN or inf")
+        # Their values (finite; a log-weight may be -inf) are tested by the step's kernels,
+        # whose flags are read with one host synchronization (:func:`_read_flags`).
         return packed, shared, log_weight
 
     def _measured(self, observed: Tensor | None) -> bool:
@@ -600,6 +586,7 @@ class RBPF:
         belief: RBPFBelief,
         packed: Tensor,
         shared: dict[str, Tensor],
+        mode_log_weight: Tensor | None,
         y: Tensor,
         observed: Tensor | None,
         rows: Tensor,
@@ -619,8 +606,10 @@ class RBPF:
         core = kernel(_bootstrap_core, compiled=self.compiled)
         log_w, mean, cov, log_evidence, history, dead, resample, flags = core(
             modes,
+            packed,
             _select(packed, modes),
             shared,
+            mode_log_weight,
             la.to_batch_last(g.mean, 1, nb + 1),
             la.to_batch_last(g.cov, 2, nb + 1),
             y_bl,
@@ -635,9 +624,8 @@ class RBPF:
             entrywise=self.compiled,
             log_ess_bound=-math.log(max(self.ess_threshold * N, 1e-300)),
         )
-        invalid, any_dead, any_resample = flags.tolist()  # one host synchronization for all three
-        if invalid:
-            raise ValueError(_INVALID_WEIGHTS)
+        read = _read_flags(flags)
+        any_dead, any_resample = read[_DEAD], read[_RESAMPLE]
         if any_resample:
             index = resample_indices(log_w, N, self.resampling, generator)
             identity = torch.arange(N, device=index.device)
@@ -651,6 +639,7 @@ class RBPF:
         belief: RBPFBelief,
         packed: Tensor,
         shared: dict[str, Tensor],
+        mode_log_weight: Tensor | None,
         y: Tensor,
         observed: Tensor | None,
         rows: Tensor,
@@ -669,9 +658,12 @@ class RBPF:
         )
         log_trans = torch.log(rows)  # (*B, N, K): log p(m_t = k | particle i)
         log_w = belief.log_weights.unsqueeze(-1) + log_trans + log_lik
-        if extra is not None:
-            log_w = log_w + extra.unsqueeze(-2)
-        log_w, log_evidence, dead, any_dead = _normalize(log_w.flatten(-2), belief.log_evidence)
+        for weight in (extra, mode_log_weight):
+            if weight is not None:
+                log_w = log_w + weight.unsqueeze(-2)
+        log_w, log_evidence, dead, invalid = _normalized(log_w.flatten(-2), belief.log_evidence)
+        flags = _flags(invalid, dead, *_dynamics_flags(packed, shared, mode_log_weight))
+        any_dead = _read_flags(flags)[_DEAD]
         index, log_w = optimal_resample_core(log_w, N, generator)
         modes = index % K
         parents = torch.div(index, K, rounding_mode="floor")
@@ -899,8 +891,10 @@ def _predict_update(
 
 def _bootstrap_core(
     modes: Tensor,
+    packed: Tensor,
     params: Tensor,
     shared: dict[str, Tensor],
+    mode_log_weight: Tensor | None,
     mean: Tensor,
     cov: Tensor,
     y: Tensor,
@@ -920,10 +914,11 @@ def _bootstrap_core(
     synchronization (compiled: one kernel).
 
     Args:
-        modes: ``(*B, N)`` the particles' new modes; params: ``(D, *B, N)`` their packed
-            dynamics (:func:`_select`, given rather than gathered here: the compiled loops
+        modes: ``(*B, N)`` the particles' new modes; packed: ``(*B', K, D)`` every mode's
+            packed dynamics (tested for finite values only); params: ``(D, *B, N)`` the
+            particles' (:func:`_select`, given rather than gathered here: the compiled loops
             vectorize over contiguous parameters, not over indirect loads); shared: the
-            fields every mode shares.
+            fields every mode shares; mode_log_weight: ``(*B', K)`` or None, the model's.
         mean: ``(n, *B, N)``; cov: ``(n, n, *B, N)``: the particles, batch-last.
         y, observed: batch-last (:func:`_measurement`); extra: ``(*B', K)`` or None.
         log_weights: ``(*B, N)``; log_evidence: ``(*B,)``; history: ``(*B, N, L + 1)``.
@@ -933,8 +928,7 @@ def _bootstrap_core(
     Returns:
         The normalized log-weights, batch-last mean and covariance, evidence and history,
         ``dead (*B)`` (every weight zero: placeholders, see :func:`_normalized`), ``resample
-        (*B)`` (ESS below the threshold, not dead) and ``flags (3,)`` bool: any NaN/+inf
-        increment, any dead, any resample.
+        (*B)`` (ESS below the threshold, not dead) and the :func:`_flags`.
     """
     mean, cov, log_lik = _predict_update(
         mean,
@@ -949,13 +943,14 @@ def _bootstrap_core(
         entrywise=entrywise,
     )
     log_w = log_weights + log_lik
-    if extra is not None:
-        log_w = log_w + extra.expand(*log_w.shape[:-1], extra.shape[-1]).gather(-1, modes)
+    for weight in (extra, mode_log_weight):
+        if weight is not None:
+            log_w = log_w + weight.expand(*log_w.shape[:-1], weight.shape[-1]).gather(-1, modes)
     log_w, log_evidence, dead, invalid = _normalized(log_w, log_evidence)
     history = torch.cat([modes.unsqueeze(-1), history[..., :-1]], -1)
     # ESS = 1 / Σ w² < threshold · N, in log space
     resample = (torch.logsumexp(2.0 * log_w, -1) > log_ess_bound) & ~dead
-    flags = torch.stack([invalid.any(), dead.any(), resample.any()])
+    flags = _flags(invalid, dead, *_dynamics_flags(packed, shared, mode_log_weight), resample)
     return log_w, mean, cov, log_evidence, history, dead, resample, flags
 
 
@@ -1039,16 +1034,50 @@ def _normalized(log_w: Tensor, log_evidence: Tensor) -> tuple[Tensor, Tensor, Te
     return log_w - increment.unsqueeze(-1), log_evidence, dead, invalid
 
 
-def _normalize(log_w: Tensor, log_evidence: Tensor) -> tuple[Tensor, Tensor, Tensor, bool]:
-    """:func:`_normalized` with its flags read (one host synchronization): raises on NaN.
+# Entries of a step's flags (:func:`_flags`).
+_INVALID, _DEAD, _BAD_DYNAMICS, _BAD_MODE_WEIGHT, _RESAMPLE = range(5)
 
-    Returns ``(log_w, log_evidence, dead, any_dead)``.
-    """
-    log_w, log_evidence, dead, invalid = _normalized(log_w, log_evidence)
-    any_invalid, any_dead = torch.stack([invalid.any(), dead.any()]).tolist()
-    if any_invalid:
+
+def _dynamics_flags(
+    packed: Tensor, shared: dict[str, Tensor], mode_log_weight: Tensor | None
+) -> tuple[Tensor, Tensor]:
+    """Whether the model's dynamics of a step hold NaN or inf, and whether its
+    ``mode_log_weight`` holds NaN or ``+inf``: two ``()`` bool tensors, no synchronization."""
+    finite = torch.isfinite(packed).all()
+    for value in shared.values():
+        finite = finite & torch.isfinite(value).all()
+    if mode_log_weight is None:
+        return ~finite, torch.zeros_like(finite)
+    return ~finite, (torch.isnan(mode_log_weight) | torch.isposinf(mode_log_weight)).any()
+
+
+def _flags(
+    invalid: Tensor,
+    dead: Tensor,
+    bad_dynamics: Tensor,
+    bad_mode_weight: Tensor,
+    resample: Tensor | None = None,
+) -> Tensor:
+    """A step's ``(5,)`` bool flags (indexed by ``_INVALID`` …): any NaN/+inf weight
+    increment, any dead entry, the model's dynamics and mode log-weights bad, any entry to
+    resample (False if ``resample`` is None)."""
+    wanted = resample.any() if resample is not None else torch.zeros_like(bad_dynamics)
+    return torch.stack([invalid.any(), dead.any(), bad_dynamics, bad_mode_weight, wanted])
+
+
+def _read_flags(flags: Tensor) -> list[bool]:
+    """A step's :func:`_flags` read (one host synchronization), raising the error they call
+    for."""
+    read: list[bool] = flags.tolist()
+    invalid, _, bad_dynamics, bad_mode_weight, _ = read
+    # The model's faults come first: they make the weights NaN too.
+    if bad_mode_weight:
+        raise ValueError("model: mode_dynamics().mode_log_weight: contains NaN or +inf")
+    if bad_dynamics:
+        raise ValueError("model: mode_dynamics() returned NaN or inf")
+    if invalid:
         raise ValueError(_INVALID_WEIGHTS)
-    return log_w, log_evidence, dead, bool(any_dead)
+    return read
 
 
 def _gather_states(index: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
