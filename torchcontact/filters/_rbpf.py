@@ -1069,13 +1069,12 @@ def _read_flags(flags: Tensor) -> list[bool]:
     """A step's :func:`_flags` read (one host synchronization), raising the error they call
     for."""
     read: list[bool] = flags.tolist()
-    invalid, _, bad_dynamics, bad_mode_weight, _ = read
     # The model's faults come first: they make the weights NaN too.
-    if bad_mode_weight:
+    if read[_BAD_MODE_WEIGHT]:
         raise ValueError("model: mode_dynamics().mode_log_weight: contains NaN or +inf")
-    if bad_dynamics:
+    if read[_BAD_DYNAMICS]:
         raise ValueError("model: mode_dynamics() returned NaN or inf")
-    if invalid:
+    if read[_INVALID]:
         raise ValueError(_INVALID_WEIGHTS)
     return read
 
