@@ -84,14 +84,25 @@ def best_of(fn: Callable[[], object], *, repeats: int, number: int) -> dict[str,
     """Seconds per call over ``repeats`` runs of ``number`` calls each: best and median wall
     time, and best CPU time of this process (less sensitive to other load on the machine)."""
     fn()  # warm-up
-    wall, cpu = [], []
-    for _ in range(repeats):
-        start, start_cpu = time.perf_counter(), time.process_time()
-        for _ in range(number):
-            fn()
-        wall.append((time.perf_counter() - start) / number)
-        cpu.append((time.process_time() - start_cpu) / number)
-    return {"best_s": min(wall), "median_s": statistics.median(wall), "best_cpu_s": min(cpu)}
+    return _summary([_timed_run(fn, number) for _ in range(repeats)])
+
+
+def _timed_run(fn: Callable[[], object], number: int) -> tuple[float, float]:
+    """Wall and CPU seconds per call of ``number`` calls of ``fn``."""
+    start, start_cpu = time.perf_counter(), time.process_time()
+    for _ in range(number):
+        fn()
+    return (time.perf_counter() - start) / number, (time.process_time() - start_cpu) / number
+
+
+def _summary(runs: Sequence[tuple[float, float]]) -> dict[str, float]:
+    """Best and median wall time and best CPU time of :func:`_timed_run` results."""
+    wall = [w for w, _ in runs]
+    return {
+        "best_s": min(wall),
+        "median_s": statistics.median(wall),
+        "best_cpu_s": min(c for _, c in runs),
+    }
 
 
 def interleaved_best_of(
@@ -104,20 +115,12 @@ def interleaved_best_of(
     instead of all runs of one: the best of a setting's runs is spread over the whole
     section's time, not over a fraction of a second.
     """
-    wall: list[list[float]] = [[] for _ in settings]
-    cpu: list[list[float]] = [[] for _ in settings]
+    runs: list[list[tuple[float, float]]] = [[] for _ in settings]
     for _ in range(rounds):
-        for i, (fn, number) in enumerate(settings):
+        for (fn, number), timed in zip(settings, runs, strict=True):
             fn()  # its buffers back in the caches after the other settings' runs
-            start, start_cpu = time.perf_counter(), time.process_time()
-            for _ in range(number):
-                fn()
-            wall[i].append((time.perf_counter() - start) / number)
-            cpu[i].append((time.process_time() - start_cpu) / number)
-    return [
-        {"best_s": min(w), "median_s": statistics.median(w), "best_cpu_s": min(c)}
-        for w, c in zip(wall, cpu, strict=True)
-    ]
+            timed.append(_timed_run(fn, number))
+    return [_summary(timed) for timed in runs]
 
 
 def kalman_model(rng: np.random.Generator) -> dict[str, np.ndarray]:
