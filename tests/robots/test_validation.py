@@ -40,7 +40,7 @@ def test_non_finite_q(wam: Robot, bad: float) -> None:
 
 
 def test_q_type_and_dtype(wam: Robot) -> None:
-    with pytest.raises(TypeError, match=r"q must be a torch\.Tensor"):
+    with pytest.raises(ValueError, match=r"q must be a torch\.Tensor"):
         wam.forward_kinematics([0.0] * 7)
     with pytest.raises(ValueError, match="q must be float32 or float64"):
         wam.forward_kinematics(torch.zeros(7, dtype=torch.int64))

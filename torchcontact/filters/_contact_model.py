@@ -9,8 +9,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchcontact._checks import describe
 from torchcontact.contact import solve_mode
-from torchcontact.filters._checks import describe
 from torchcontact.filters._compiled import kernel
 from torchcontact.filters._planar_linearization import (
     ModeTable,

@@ -7,8 +7,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from torchcontact._checks import broadcast_batch, check_mask, check_tensor
 from torchcontact.filters import _linalg as la
-from torchcontact.filters._checks import broadcast_batch, check_mask, check_tensor
 from torchcontact.filters._gaussian import Gaussian, check_gaussian, unchecked_gaussian
 from torchcontact.filters._kalman import observed_components, update_core
 from torchcontact.filters._manifold import EUCLIDEAN, Manifold
@@ -89,12 +89,12 @@ def ekf_predict(
     """
     manifold = _check_manifold(manifold, "manifold")
     g, n, dim = _check_state(g, manifold)
-    Q = check_tensor(Q, "Q", event_shape=(dim, dim), like=g.mean)
+    Q = check_tensor("Q", Q, event_shape=(dim, dim), like=g.mean)
     shapes = [("g", g.batch_shape), ("Q", Q.shape[:-2])]
     if u is not None:
         if not isinstance(u, Tensor) or u.ndim < 1:
             raise ValueError(f"u: expected a (*B, p) tensor, got {getattr(u, 'shape', u)!r}")
-        u = check_tensor(u, "u", event_shape=(u.shape[-1],), like=g.mean)
+        u = check_tensor("u", u, event_shape=(u.shape[-1],), like=g.mean)
         shapes.append(("u", u.shape[:-1]))
     batch = broadcast_batch(shapes)
     x = g.mean.expand(*batch, n).reshape(-1, n)
@@ -163,12 +163,12 @@ def ekf_update(
     if not isinstance(y, Tensor) or y.ndim < 1:
         raise ValueError(f"y: expected a (*B, m) tensor, got {getattr(y, 'shape', y)!r}")
     m = int(y.shape[-1])
-    y = check_tensor(y, "y", event_shape=(m,), like=g.mean, allow_nan=True)
+    y = check_tensor("y", y, event_shape=(m,), like=g.mean, allow_nan=True)
     k = measurement_manifold.tangent_dim(m)
-    R = check_tensor(R, "R", event_shape=(k, k), like=g.mean)
+    R = check_tensor("R", R, event_shape=(k, k), like=g.mean)
     shapes = [("g", g.batch_shape), ("y", y.shape[:-1]), ("R", R.shape[:-2])]
     if mask is not None:
-        mask = check_mask(mask, "mask", size=k)
+        mask = check_mask("mask", mask, size=k)
         shapes.append(("mask", mask.shape[:-1]))
     batch = broadcast_batch(shapes)
     nb = len(batch)

@@ -7,8 +7,8 @@ import math
 import torch
 from torch import Tensor
 
+from torchcontact._checks import broadcast_batch, check_mask, check_tensor
 from torchcontact.filters import _linalg as la
-from torchcontact.filters._checks import broadcast_batch, check_mask, check_tensor
 from torchcontact.filters._gaussian import Gaussian, check_gaussian, unchecked_gaussian
 
 _LOG_2PI = math.log(2.0 * math.pi)
@@ -186,11 +186,11 @@ def kf_predict(g: Gaussian, *, F: Tensor, c: Tensor | None = None, Q: Tensor) ->
     """
     g = check_gaussian(g, "g", euclidean=True)
     n = g.dim
-    F = check_tensor(F, "F", event_shape=(n, n), like=g.mean)
-    Q = check_tensor(Q, "Q", event_shape=(n, n), like=g.mean)
+    F = check_tensor("F", F, event_shape=(n, n), like=g.mean)
+    Q = check_tensor("Q", Q, event_shape=(n, n), like=g.mean)
     shapes = [("g", g.batch_shape), ("F", F.shape[:-2]), ("Q", Q.shape[:-2])]
     if c is not None:
-        c = check_tensor(c, "c", event_shape=(n,), like=g.mean)
+        c = check_tensor("c", c, event_shape=(n,), like=g.mean)
         shapes.append(("c", c.shape[:-1]))
     batch = broadcast_batch(shapes)
     nb = len(batch)
@@ -263,15 +263,15 @@ def kf_update(
     if not isinstance(y, Tensor) or y.ndim < 1:
         raise ValueError(f"y: expected a (*B, m) tensor, got {getattr(y, 'shape', y)!r}")
     k = int(y.shape[-1])
-    y = check_tensor(y, "y", event_shape=(k,), like=g.mean, allow_nan=True)
-    H = check_tensor(H, "H", event_shape=(k, n), like=g.mean)
-    R = check_tensor(R, "R", event_shape=(k, k), like=g.mean)
+    y = check_tensor("y", y, event_shape=(k,), like=g.mean, allow_nan=True)
+    H = check_tensor("H", H, event_shape=(k, n), like=g.mean)
+    R = check_tensor("R", R, event_shape=(k, k), like=g.mean)
     shapes = [("g", g.batch_shape), ("y", y.shape[:-1]), ("H", H.shape[:-2]), ("R", R.shape[:-2])]
     if d is not None:
-        d = check_tensor(d, "d", event_shape=(k,), like=g.mean)
+        d = check_tensor("d", d, event_shape=(k,), like=g.mean)
         shapes.append(("d", d.shape[:-1]))
     if mask is not None:
-        mask = check_mask(mask, "mask", size=k)
+        mask = check_mask("mask", mask, size=k)
         shapes.append(("mask", mask.shape[:-1]))
     batch = broadcast_batch(shapes)
     nb = len(batch)

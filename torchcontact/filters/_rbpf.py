@@ -10,8 +10,8 @@ from typing import Any, Literal, Protocol, get_args, runtime_checkable
 import torch
 from torch import Tensor
 
+from torchcontact._checks import broadcast_batch, check_mask, check_tensor, describe
 from torchcontact.filters import _linalg as la
-from torchcontact.filters._checks import broadcast_batch, check_mask, check_tensor, describe
 from torchcontact.filters._compiled import kernel
 from torchcontact.filters._gaussian import Gaussian, check_gaussian, unchecked_gaussian
 from torchcontact.filters._kalman import (
@@ -422,16 +422,16 @@ class RBPF:
         like = model.initial
         if not isinstance(y, Tensor) or y.ndim < 1:
             raise ValueError(f"y: expected a (*B, {m}) tensor, got {getattr(y, 'shape', y)!r}")
-        y = check_tensor(y, "y", event_shape=(m,), like=like, allow_nan=True)
+        y = check_tensor("y", y, event_shape=(m,), like=like, allow_nan=True)
         shapes: list[tuple[str, Sequence[int]]] = [("belief", batch), ("y", y.shape[:-1])]
         if mask is not None:
-            mask = check_mask(mask, "mask", size=m)
+            mask = check_mask("mask", mask, size=m)
             shapes.append(("mask", mask.shape[:-1]))
         extra = None
         if extra_log_likelihood is not None:
             extra = check_tensor(
-                extra_log_likelihood,
                 "extra_log_likelihood",
+                extra_log_likelihood,
                 event_shape=(K,),
                 like=like,
                 allow_neginf=True,
@@ -478,7 +478,7 @@ class RBPF:
                 -2, belief.modes.unsqueeze(-1).expand(*batch, N, K)
             )
         rows = check_tensor(
-            rows, "model: mode_dynamics().transition_rows", event_shape=(N, K), like=model.initial
+            "model: mode_dynamics().transition_rows", rows, event_shape=(N, K), like=model.initial
         )
         shapes = [("belief", batch), ("transition_rows", rows.shape[:-2])]
         if broadcast_batch(shapes) != batch:

@@ -8,8 +8,8 @@ from typing import overload
 import torch
 from torch import Tensor
 
+from torchcontact._checks import broadcast_batch, check_tensor
 from torchcontact.filters import _linalg as la
-from torchcontact.filters._checks import broadcast_batch, check_tensor
 from torchcontact.filters._gaussian import Gaussian, check_gaussian, unchecked_gaussian
 
 
@@ -89,9 +89,9 @@ def rts_smooth(
         if g.dim != n or g.dtype != like.dtype or g.batch_shape != batch:
             raise ValueError(f"{name}: expected batch {tuple(batch)}, n = {n}, {like.dtype}")
     if isinstance(F, Tensor):
-        Fs = [check_tensor(F, "F", event_shape=(n, n), like=like)] * (T - 1)
+        Fs = [check_tensor("F", F, event_shape=(n, n), like=like)] * (T - 1)
     elif isinstance(F, Sequence) and len(F) == T - 1:
-        Fs = [check_tensor(Ft, f"F[{t}]", event_shape=(n, n), like=like) for t, Ft in enumerate(F)]
+        Fs = [check_tensor(f"F[{t}]", Ft, event_shape=(n, n), like=like) for t, Ft in enumerate(F)]
     else:
         raise ValueError(f"F: expected a tensor or a sequence of T - 1 = {T - 1} tensors")
     broadcast_batch([("filtered", batch)] + [(f"F[{t}]", Ft.shape[:-2]) for t, Ft in enumerate(Fs)])

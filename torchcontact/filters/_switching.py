@@ -8,7 +8,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcontact.filters._checks import describe
+from torchcontact._checks import describe
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)

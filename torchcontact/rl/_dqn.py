@@ -6,7 +6,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional
 
-from torchcontact.rl._checks import all_finite, check_real
+from torchcontact._checks import all_finite, check_real
 from torchcontact.rl._replay import Transitions
 
 

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchcontact.rl._checks import check_int, check_real
+from torchcontact._checks import check_int, check_real
 from torchcontact.states import ContactState, ManipulationGraph, ManipulationState, StateTable
 
 _FORMAT = "torchcontact.DynaQ"

@@ -8,7 +8,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from torchcontact.rl._checks import FLOAT_DTYPES, all_finite, check_float_tensor, check_int
+from torchcontact._checks import FLOAT_DTYPES, all_finite, check_float, check_int
 
 
 class QNetwork(nn.Module):
@@ -88,7 +88,7 @@ class QNetwork(nn.Module):
         Raises:
             ValueError: ``q_table`` is not a finite ``(K, A)`` floating tensor.
         """
-        q_table = check_float_tensor("q_table", q_table, min_ndim=2, what="(K, A)")
+        q_table = check_float("q_table", q_table, min_ndim=2, what="(K, A)")
         if q_table.ndim != 2 or q_table.dtype not in (torch.float32, torch.float64):
             raise ValueError(
                 f"q_table must be a (K, A) float32/float64 tensor, got {tuple(q_table.shape)} "

@@ -7,7 +7,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchcontact.rl._checks import check_float_tensor
+from torchcontact._checks import check_float
 
 
 def qmdp_values(q_values: Tensor, probabilities: Tensor) -> Tensor:
@@ -34,8 +34,8 @@ def qmdp_values(q_values: Tensor, probabilities: Tensor) -> Tensor:
         M. L. Littman, A. R. Cassandra and L. P. Kaelbling, "Learning policies for partially
         observable environments: scaling up", ICML 1995 (the QMDP approximation).
     """
-    q_values = check_float_tensor("q_values", q_values, min_ndim=2, what="(*B, K, A)")
-    probabilities = check_float_tensor("probabilities", probabilities, min_ndim=1, what="(*B, K)")
+    q_values = check_float("q_values", q_values, min_ndim=2, what="(*B, K, A)")
+    probabilities = check_float("probabilities", probabilities, min_ndim=1, what="(*B, K)")
     K, A = q_values.shape[-2:]
     if K == 0 or A == 0:
         raise ValueError(f"q_values must have K >= 1 and A >= 1, got {tuple(q_values.shape)}")

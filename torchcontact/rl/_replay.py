@@ -8,7 +8,7 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor
 
-from torchcontact.rl._checks import FLOAT_DTYPES, all_finite, check_int
+from torchcontact._checks import FLOAT_DTYPES, all_finite, check_int
 
 _FORMAT = "torchcontact.ReplayBuffer"
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from torchcontact.rl._checks import check_int, check_real
+from torchcontact._checks import check_int, check_real
 
 
 @dataclass(frozen=True)

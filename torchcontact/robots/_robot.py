@@ -24,11 +24,11 @@ import torch
 from pytorch_kinematics.chain import Chain
 from torch import Tensor
 
-from torchcontact.robots._checks import (
+from torchcontact._checks import (
     broadcast_batch,
-    check_float_tensor,
-    check_last_dims,
+    check_float,
     check_like,
+    check_trailing,
     check_unit_rows,
 )
 from torchcontact.robots._coupling import JointCoupling
@@ -174,8 +174,10 @@ class Robot:
         return self._cache[key]
 
     def _check_q(self, q: object) -> Tensor:
-        q = check_float_tensor("q", q)
-        check_last_dims("q", q, (self.dof,), f"(*B, {self.dof}) (joints {list(self.joint_names)})")
+        q = check_float("q", q)
+        check_trailing(
+            "q", q, trailing=(self.dof,), what=f"(*B, {self.dof}) (joints {list(self.joint_names)})"
+        )
         return q
 
     def _frame_index(self, link: object) -> int:
@@ -246,10 +248,10 @@ class Robot:
         q = self._check_q(q)
         frame = self._frame_index(link)
         if point is not None:
-            point = check_float_tensor("point", point)
+            point = check_float("point", point)
             check_like("point", point, reference_name="q", reference=q)
-            check_last_dims("point", point, (3,), "(*B, 3)")
-            broadcast_batch({"q": tuple(q.shape[:-1]), "point": tuple(point.shape[:-1])})
+            check_trailing("point", point, trailing=(3,), what="(*B, 3)")
+            broadcast_batch([("q", q.shape[:-1]), ("point", point.shape[:-1])])
         transforms, kin = self._transforms(q)
         pose = transforms[frame]
         x = pose[..., :3, 3]
@@ -311,25 +313,25 @@ class Robot:
                 not orthogonal to the normal, non-broadcastable batches, or an unknown ``link``.
         """
         q = self._check_q(q)
-        point = check_float_tensor("point", point)
-        normal = check_float_tensor("normal", normal)
-        tangents = check_float_tensor("tangents", tangents)
+        point = check_float("point", point)
+        normal = check_float("normal", normal)
+        tangents = check_float("tangents", tangents)
         for name, value in (("point", point), ("normal", normal), ("tangents", tangents)):
             check_like(name, value, reference_name="q", reference=q)
-        check_last_dims("point", point, (3,), "(*B, 3)")
-        check_last_dims("normal", normal, (3,), "(*B, 3)")
+        check_trailing("point", point, trailing=(3,), what="(*B, 3)")
+        check_trailing("normal", normal, trailing=(3,), what="(*B, 3)")
         if tangents.ndim < 2 or tangents.shape[-1] != 3 or tangents.shape[-2] < 1:
             shape = tuple(tangents.shape)
             raise ValueError(f"tangents must have shape (*B, D, 3) with D >= 1, got {shape}")
         check_unit_rows("normal", normal)
         check_unit_rows("tangents", tangents)
         broadcast_batch(
-            {
-                "q": tuple(q.shape[:-1]),
-                "point": tuple(point.shape[:-1]),
-                "normal": tuple(normal.shape[:-1]),
-                "tangents": tuple(tangents.shape[:-2]),
-            }
+            [
+                ("q", q.shape[:-1]),
+                ("point", point.shape[:-1]),
+                ("normal", normal.shape[:-1]),
+                ("tangents", tangents.shape[:-2]),
+            ]
         )
         tol = 1e-6 if q.dtype == torch.float64 else 1e-3
         if float((tangents @ normal.unsqueeze(-1)).abs().max()) > tol:

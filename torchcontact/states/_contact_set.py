@@ -10,7 +10,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcontact.states._checks import check_dim, check_dtype, check_float
+from torchcontact._checks import check_dim, check_dtype, check_float
 from torchcontact.states._frames import check_pose, to_body_frame
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchcontact._checks import check_dtype, check_float
 from torchcontact.contact import BOX_CORNER_SIGNS
-from torchcontact.states._checks import check_dtype, check_float
 from torchcontact.states._contact_set import ContactSet, PartnerKind
 from torchcontact.states._frames import rotation_matrix
 

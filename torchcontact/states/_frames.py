@@ -7,8 +7,8 @@ import math
 import torch
 from torch import Tensor
 
+from torchcontact._checks import check_float
 from torchcontact.geometry import quat_mul
-from torchcontact.states._checks import check_float
 
 
 def pose_size(dim: int) -> int:

@@ -11,7 +11,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcontact.states._checks import check_float
+from torchcontact._checks import check_float
 from torchcontact.states._manipulation_state import ManipulationState
 from torchcontact.states._registry import StateTable
 

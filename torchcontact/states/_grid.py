@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchcontact.states._checks import check_dim, check_dtype, check_float, check_positive
+from torchcontact._checks import check_dim, check_dtype, check_float, check_positive
 
 # For each major axis of a normal, the remaining axes in increasing order.
 _OTHER_AXES = {2: ((1,), (0,)), 3: ((1, 2), (0, 2), (0, 1))}

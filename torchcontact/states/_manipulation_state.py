@@ -9,7 +9,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcontact.states._checks import check_dim, check_positive
+from torchcontact._checks import check_dim, check_positive
 from torchcontact.states._contact_set import ContactSet
 from torchcontact.states._contact_state import ContactState, contact_states
 from torchcontact.states._frames import check_pose, relative_pose

@@ -1,0 +1,284 @@
+"""Input validation for every public entry point of the library.
+
+One rule holds throughout: a bad argument (wrong type, shape, dtype or device, NaN or inf,
+a value out of range) raises ``ValueError`` whose message starts with the argument's name.
+No entry point raises ``TypeError`` for a wrong type: a caller catches one exception type.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Sequence
+
+import torch
+from torch import Tensor
+
+#: The floating dtypes the library computes in.
+FLOAT_DTYPES = (torch.float32, torch.float64)
+
+
+def describe(value: object) -> str:
+    """A short description of a value for error messages: dtype and shape of a tensor."""
+    if isinstance(value, Tensor):
+        return f"a {value.dtype} tensor of shape {tuple(value.shape)}"
+    return type(value).__name__
+
+
+def all_finite(value: Tensor) -> bool:
+    """Whether every entry of a floating tensor is finite.
+
+    A finite sum proves it (NaN and ±inf propagate through a sum) and costs far less than an
+    elementwise test on large tensors; only a non-finite sum (a non-finite entry, or an
+    overflow) falls back to the elementwise test.
+    """
+    if bool(torch.isfinite(value.sum())):
+        return True
+    return bool(torch.isfinite(value).all())
+
+
+def check_int(name: str, value: object, *, low: int, high: int | None = None) -> int:
+    """Check that ``value`` is an integer (not a bool) in ``[low, high)`` and return it.
+
+    ``numpy`` integers are accepted and converted to ``int``; ``high=None`` means no upper
+    bound.
+
+    Raises:
+        ValueError: ``value`` is not an integer or lies outside the range.
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        raise ValueError(f"{name} must be an int, got {value!r}")
+    result = int(value)
+    if result < low or (high is not None and result >= high):
+        bounds = f"[{low}, {high})" if high is not None else f">= {low}"
+        raise ValueError(f"{name} must lie in {bounds}, got {result}")
+    return result
+
+
+def check_real(
+    name: str,
+    value: object,
+    *,
+    low: float = -math.inf,
+    high: float = math.inf,
+    low_open: bool = False,
+    high_open: bool = False,
+) -> float:
+    """Check that ``value`` is a finite real number in the given interval and return it.
+
+    Args:
+        name: the argument's name, used in the error message.
+        value: the object to check (a Python or numpy real number, not a bool).
+        low: lower bound.
+        high: upper bound.
+        low_open: exclude ``low`` itself.
+        high_open: exclude ``high`` itself.
+
+    Raises:
+        ValueError: ``value`` is not a finite real number in the interval.
+    """
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise ValueError(f"{name} must be a real number, got {value!r}")
+    result = float(value)
+    too_low = result <= low if low_open else result < low
+    too_high = result >= high if high_open else result > high
+    if not math.isfinite(result) or too_low or too_high:
+        if low == 0.0 and low_open and high == math.inf:
+            raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        interval = f"{'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
+        raise ValueError(f"{name} must be a finite number in {interval}, got {value!r}")
+    return result
+
+
+def check_positive(name: str, value: object) -> float:
+    """Check that ``value`` is a finite real number ``> 0`` and return it as a float.
+
+    Raises:
+        ValueError: ``value`` is not a finite positive number.
+    """
+    return check_real(name, value, low=0.0, low_open=True)
+
+
+def check_trailing(name: str, value: Tensor, *, trailing: Sequence[int], what: str) -> None:
+    """Check the trailing sizes of ``value`` (``-1`` in ``trailing`` accepts any size).
+
+    Raises:
+        ValueError: ``value`` has too few dimensions or a trailing size differs.
+    """
+    k = len(trailing)
+    tail = tuple(value.shape[value.ndim - k :]) if value.ndim >= k else None
+    if tail is None or any(t not in (-1, s) for t, s in zip(trailing, tail, strict=True)):
+        raise ValueError(f"{name} must have shape {what}, got {tuple(value.shape)}")
+
+
+def check_float(
+    name: str,
+    value: object,
+    *,
+    trailing: Sequence[int] = (),
+    min_ndim: int = 0,
+    what: str = "",
+) -> Tensor:
+    """Check that ``value`` is a finite float32/float64 tensor of the described shape.
+
+    Args:
+        name: the argument's name, used in the error message.
+        value: the object to check.
+        trailing: required trailing sizes; ``-1`` accepts any size.
+        min_ndim: the least number of dimensions.
+        what: human description of the expected shape, e.g. ``"(*B, K, d)"``.
+
+    Returns:
+        ``value``, typed as a tensor.
+
+    Raises:
+        ValueError: ``value`` is not a float32/float64 tensor, has the wrong shape, or holds
+            NaN or inf.
+    """
+    if not isinstance(value, Tensor):
+        raise ValueError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
+    if value.dtype not in FLOAT_DTYPES:
+        raise ValueError(f"{name} must be float32 or float64, got dtype {value.dtype}")
+    if value.ndim < min_ndim:
+        raise ValueError(f"{name} must have shape {what}, got {tuple(value.shape)}")
+    check_trailing(name, value, trailing=trailing, what=what)
+    if value.numel() and not all_finite(value):
+        raise ValueError(f"{name} contains NaN or inf")
+    return value
+
+
+def check_tensor(
+    name: str,
+    x: object,
+    *,
+    event_shape: Sequence[int],
+    like: Tensor,
+    allow_nan: bool = False,
+    allow_neginf: bool = False,
+) -> Tensor:
+    """Check that ``x`` is a finite ``(*B', *event_shape)`` tensor with ``like``'s dtype/device.
+
+    Args:
+        name: argument name used in error messages.
+        x: the value to check.
+        event_shape: required trailing shape.
+        like: reference tensor giving dtype and device.
+        allow_nan: let NaN through (the caller gives it a meaning).
+        allow_neginf: let ``-inf`` through (a log-probability of zero); ``+inf`` is an error.
+
+    Returns:
+        ``x`` as a tensor.
+    """
+    if not isinstance(x, Tensor):
+        raise ValueError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    if x.dtype != like.dtype or x.device != like.device:
+        raise ValueError(
+            f"{name}: expected dtype {like.dtype} on {like.device}, got {x.dtype} on {x.device}"
+        )
+    event = tuple(event_shape)
+    if x.ndim < len(event) or tuple(x.shape[x.ndim - len(event) :]) != event:
+        shape = ", ".join(["*B", *map(str, event)])
+        raise ValueError(f"{name}: expected shape ({shape}), got {tuple(x.shape)}")
+    if allow_nan:
+        bad = torch.isposinf(x) if allow_neginf else torch.isinf(x)
+    else:
+        bad = torch.isposinf(x) | torch.isnan(x) if allow_neginf else ~torch.isfinite(x)
+    if bool(bad.any()):
+        allowed = " or ".join(["NaN"] * (not allow_nan) + ["-inf"] * (not allow_neginf) + ["+inf"])
+        raise ValueError(f"{name}: contains {allowed}")
+    return x
+
+
+def check_like(name: str, value: Tensor, *, reference_name: str, reference: Tensor) -> None:
+    """Check that ``value`` has the dtype and device of ``reference`` (nothing is cast silently).
+
+    Raises:
+        ValueError: The dtypes or devices differ.
+    """
+    if value.dtype != reference.dtype or value.device != reference.device:
+        raise ValueError(
+            f"{name} must have the dtype and device of {reference_name} "
+            f"({reference.dtype}, {reference.device}), got ({value.dtype}, {value.device})"
+        )
+
+
+def check_dtype(name: str, value: object, dtype: torch.dtype, what: str) -> Tensor:
+    """Check that ``value`` is a tensor of exactly ``dtype`` (``what`` describes its shape).
+
+    Raises:
+        ValueError: ``value`` is not a tensor of that dtype.
+    """
+    if not isinstance(value, Tensor) or value.dtype != dtype:
+        got = value.dtype if isinstance(value, Tensor) else type(value).__name__
+        raise ValueError(f"{name} must be a {dtype} tensor {what}, got {got}")
+    return value
+
+
+def check_mask(name: str, mask: object, *, size: int) -> Tensor:
+    """Check that ``mask`` is a ``(*B', size)`` bool tensor."""
+    if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
+        raise ValueError(f"{name}: expected a bool tensor, got {getattr(mask, 'dtype', mask)!r}")
+    if mask.ndim < 1 or mask.shape[-1] != size:
+        raise ValueError(f"{name}: expected shape (*B, {size}), got {tuple(mask.shape)}")
+    return mask
+
+
+def check_unit_rows(name: str, value: Tensor) -> None:
+    """Check that every vector along the last dimension of ``value`` has unit length.
+
+    The tolerance is 1e-6 in float64 and 1e-3 in float32 (on the length).
+
+    Raises:
+        ValueError: Some vector's length differs from 1 by more than the tolerance.
+    """
+    tol = 1e-6 if value.dtype == torch.float64 else 1e-3
+    error = (torch.linalg.vector_norm(value, dim=-1) - 1.0).abs()
+    if error.numel() > 0 and float(error.max()) > tol:
+        raise ValueError(
+            f"{name} must hold unit vectors along its last dimension "
+            f"(largest length error {float(error.max()):.3g} > {tol:g})"
+        )
+
+
+def check_dim(name: str, value: object) -> int:
+    """Check that ``value`` is the spatial dimension 2 (planar) or 3 (spatial).
+
+    Raises:
+        ValueError: ``value`` is neither 2 nor 3.
+    """
+    if isinstance(value, bool) or value not in (2, 3):
+        raise ValueError(f"{name} must be 2 (planar) or 3 (spatial), got {value!r}")
+    assert isinstance(value, int)
+    return value
+
+
+def broadcast_batch(shapes: Sequence[tuple[str, Sequence[int]]]) -> torch.Size:
+    """Broadcast named batch shapes (NumPy rules), naming every argument on failure.
+
+    Plain Python: ``torch.broadcast_shapes`` costs tens of microseconds per call.
+
+    Args:
+        shapes: ``(argument name, batch shape)`` pairs.
+
+    Returns:
+        The broadcast batch shape.
+
+    Raises:
+        ValueError: the batch shapes do not broadcast; the message lists every argument's.
+    """
+    batch: list[int] = []
+    for name, shape in shapes:
+        dims = list(shape)
+        if len(dims) > len(batch):
+            batch = [1] * (len(dims) - len(batch)) + batch
+        offset = len(batch) - len(dims)
+        for i, size in enumerate(dims):
+            current = batch[offset + i]
+            if size != current and 1 not in (size, current):
+                listing = ", ".join(f"{n} {tuple(s)}" for n, s in shapes)
+                raise ValueError(
+                    f"{name}: batch shape {tuple(dims)} does not broadcast with {tuple(batch)} "
+                    f"(batch shapes do not broadcast: {listing})"
+                )
+            batch[offset + i] = current if size == 1 else size
+    return torch.Size(batch)
