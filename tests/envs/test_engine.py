@@ -63,12 +63,14 @@ def test_step_matches_simulator_step_from_the_same_states() -> None:
         assert torch.equal(actual.solver, expected.solver)
         # Where no solver converged the step holds no solution, only the last attempt.
         solved = expected.solver != UNSOLVED
+        # Relative to the state's size: an unwrapped angle of a spinning body reaches
+        # hundreds of radians, whose last digits differ with the CPU's kernels.
         for name in ("q", "v"):
             torch.testing.assert_close(
                 getattr(actual.state, name)[solved],
                 getattr(expected.state, name)[solved],
                 atol=1e-10,
-                rtol=0,
+                rtol=1e-10,
             )
         torch.testing.assert_close(actual.pn[solved], expected.pn[solved], atol=1e-10, rtol=1e-10)
         torch.testing.assert_close(actual.pt[solved], expected.pt[solved], atol=1e-10, rtol=1e-10)

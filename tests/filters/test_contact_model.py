@@ -114,7 +114,8 @@ def test_linearization_matches_automatic_differentiation() -> None:
         v=torch.tensor([[0.4, 0.0, 0.0]], dtype=F64),
     )
     F, c = model.linearize(x, control=control)
-    assert bool(torch.isfinite(F).all()) and bool(torch.isfinite(c).all())
+    assert bool(torch.isfinite(F).all())
+    assert bool(torch.isfinite(c).all())
     K = table.shape[0]
     state = SceneState(
         q=x[:3].expand(K, 1, 3),
