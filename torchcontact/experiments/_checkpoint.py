@@ -164,7 +164,13 @@ def open_run(
 
     ``args.resume`` unset: a new folder (:func:`new_run_dir` of ``args.out_dir``,
     ``args.name`` and ``args.seed``). Set: that run folder, with its checkpoint checked by
-    :func:`load_checkpoint` (``keys`` and ``free`` are passed on).
+    :func:`load_checkpoint`.
+
+    Args:
+        args: the script's arguments, a dataclass instance with the fields ``resume``,
+            ``out_dir``, ``name``, ``seed`` and ``rounds``.
+        keys: the checkpoint's entries the caller reads, besides ``"args"``.
+        free: fields that may differ from the checkpoint's (see :func:`load_checkpoint`).
 
     Raises:
         ValueError: ``args.resume`` names no folder with a readable checkpoint written with
