@@ -9,9 +9,12 @@ graph after each round when planning, evaluating the greedy policy every few rou
 the RBPF's belief model (contact-class-conditioned grasp motion, tactile model, the graph as
 transition) on the recorded steps and executes the policy on noisy observations: oracle (true
 state), greedy on the raw observation, and QMDP over the RBPF belief. Writes TensorBoard logs,
-checkpoints (resumed exactly with ``--resume``), ``q_table.pt``, ``graph.json``,
-``belief_model.pt``, ``learning.png``, ``graph.png`` (the graph merged to contact states) and
-``results.md`` to ``runs/<name>``.
+checkpoints, ``q_table.pt``, ``graph.json``, ``belief_model.pt``, ``learning.png``,
+``graph.png`` (the graph merged to contact states) and ``results.md`` to a new run folder,
+``runs/dyna_q_peg__<seed>__<unix time>``. A killed run continues where its last checkpoint
+left it, to the same result, with ``--resume runs/dyna_q_peg__<seed>__<unix time>`` (the
+same arguments; ``--rounds`` may grow; ``--final-episodes``, ``--particles`` and
+``--vision-sigma`` may differ, to evaluate a finished run again without training).
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
-from typing import Any, cast
+from typing import Any, get_args
 
 import matplotlib
 
@@ -27,10 +30,12 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 import torch
+import tyro
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from torchcontact.envs import (
+    NUM_CONTACT_CLASSES,
     PegInHole2DVector,
     PegInHoleBeliefModel,
     PegInHoleConfig,
@@ -39,14 +44,19 @@ from torchcontact.envs import (
     PegTransitions,
 )
 from torchcontact.experiments import (
+    CHECKPOINT,
     PegLearning,
     QLookup,
+    check_choice,
+    check_float,
+    check_int,
+    check_name,
     evaluate_settings,
-    load_checkpoint,
-    parse_dataclass,
+    open_run,
     results_table,
     round_seed,
     run_round,
+    save_checkpoint,
 )
 from torchcontact.rl import Exploration, StepSize
 from torchcontact.states import ManipulationGraph, ManipulationState
@@ -55,77 +65,64 @@ _LEARNING = PegLearning()
 #: Arguments used only after training: a finished run resumes with other values of these and
 #: only fits the belief model and evaluates again.
 _EVALUATION = ("final_episodes", "particles", "vision_sigma")
+#: The checkpoint's entries besides ``"args"``.
+_SAVED = ("agent", "round", "transitions", "history")
+_MODES = "the belief model's number of modes K"
 
 
 @dataclasses.dataclass(frozen=True)
 class Args:
     """Arguments of the Dyna-Q peg-in-hole experiment."""
 
-    name: str = dataclasses.field(default="dyna_q_peg", metadata={"help": "run name"})
-    out_dir: str = dataclasses.field(default="runs", metadata={"help": "parent of the run folder"})
-    seed: int = dataclasses.field(default=0, metadata={"help": "seed of the agent and episodes"})
-    num_envs: int = dataclasses.field(default=32, metadata={"help": "episodes per round"})
-    rounds: int = dataclasses.field(default=12, metadata={"help": "training rounds"})
-    max_steps: int = dataclasses.field(default=200, metadata={"help": "steps per episode"})
-    planning_steps: int = dataclasses.field(
-        default=_LEARNING.planning_steps,
-        metadata={"help": "Dyna-Q planning n"},
-    )
-    alpha: float = dataclasses.field(
-        default=_LEARNING.alpha,
-        metadata={"help": "Q-learning step size (the floor with --step-size visits)"},
-    )
-    step_size: str = dataclasses.field(
-        default=_LEARNING.step_size,
-        metadata={"help": "constant (alpha) or visits (max(alpha, 1/N(s, a)))"},
-    )
-    planning_penalty: float = dataclasses.field(
-        default=_LEARNING.planning_penalty,
-        metadata={"help": "pessimism of planning and sweeps: rewards less this / sqrt(N(s, a))"},
-    )
-    gamma: float = dataclasses.field(default=_LEARNING.gamma, metadata={"help": "discount factor"})
-    epsilon: float = dataclasses.field(
-        default=_LEARNING.epsilon,
-        metadata={"help": "exploration rate"},
-    )
-    exploration: str = dataclasses.field(
-        default=_LEARNING.exploration, metadata={"help": "ε exploration: uniform or least_tried"}
-    )
-    sweep: bool = dataclasses.field(
-        default=True,
-        metadata={"help": "value iteration on the graph after each round (if planning_steps > 0)"},
-    )
-    shaping: float = dataclasses.field(
-        default=_LEARNING.shaping,
-        metadata={"help": "potential-based shaping scale, reward per metre"},
-    )
-    eval_every: int = dataclasses.field(default=2, metadata={"help": "rounds between evals"})
-    eval_episodes: int = dataclasses.field(
-        default=32, metadata={"help": "greedy episodes per evaluation during training"}
-    )
-    final_episodes: int = dataclasses.field(
-        default=100,
-        metadata={"help": "episodes per setting in the final evaluation (0: none)"},
-    )
-    particles: int = dataclasses.field(default=64, metadata={"help": "RBPF particles"})
-    vision_sigma: float = dataclasses.field(
-        default=0.002, metadata={"help": "camera position noise std, m (angle: 10x, rad)"}
-    )
-    x_edges: str = dataclasses.field(
-        default="",
-        metadata={"help": "grid cell edges along x, m, comma-separated (empty: the default)"},
-    )
-    y_edges: str = dataclasses.field(
-        default="",
-        metadata={"help": "grid cell edges along y, m, comma-separated (empty: the default)"},
-    )
-    angle_edges: str = dataclasses.field(
-        default="",
-        metadata={"help": "grid cell edges of the angle, rad, comma-separated (empty: default)"},
-    )
-    resume: bool = dataclasses.field(
-        default=True, metadata={"help": "continue from the run folder's checkpoint"}
-    )
+    name: str = "dyna_q_peg"
+    """experiment name: a new run writes to <out-dir>/<name>__<seed>__<unix time>"""
+    out_dir: str = "runs"
+    """parent of the new run folders"""
+    resume: str | None = None
+    """a run folder to continue from its checkpoint (rounds may grow; final-episodes,
+    particles and vision-sigma may differ: a finished run is evaluated again)"""
+    seed: int = 0
+    """seed of the agent and episodes"""
+    num_envs: int = 32
+    """episodes per round"""
+    rounds: int = 12
+    """training rounds"""
+    max_steps: int = 200
+    """steps per episode"""
+    planning_steps: int = _LEARNING.planning_steps
+    """Dyna-Q planning n"""
+    alpha: float = _LEARNING.alpha
+    """Q-learning step size (the floor with --step-size visits)"""
+    step_size: StepSize = _LEARNING.step_size
+    """constant (alpha) or visits (max(alpha, 1/N(s, a)))"""
+    planning_penalty: float = _LEARNING.planning_penalty
+    """pessimism of planning and sweeps: rewards less this / sqrt(N(s, a))"""
+    gamma: float = _LEARNING.gamma
+    """discount factor"""
+    epsilon: float = _LEARNING.epsilon
+    """exploration rate"""
+    exploration: Exploration = _LEARNING.exploration
+    """ε exploration: uniform or least_tried"""
+    sweep: bool = True
+    """value iteration on the graph after each round (if planning_steps > 0)"""
+    shaping: float = _LEARNING.shaping
+    """potential-based shaping scale, reward per metre"""
+    eval_every: int = 2
+    """rounds between evals"""
+    eval_episodes: int = 32
+    """greedy episodes per evaluation during training"""
+    final_episodes: int = 100
+    """episodes per setting in the final evaluation (0: none)"""
+    particles: int = 64
+    """RBPF particles"""
+    vision_sigma: float = 0.002
+    """camera position noise std, m (angle: 10x, rad)"""
+    x_edges: str = ""
+    """grid cell edges along x, m, comma-separated (empty: the default)"""
+    y_edges: str = ""
+    """grid cell edges along y, m, comma-separated (empty: the default)"""
+    angle_edges: str = ""
+    """grid cell edges of the angle, rad, comma-separated (empty: default)"""
 
 
 def _config(args: Args, noisy: bool) -> PegInHoleConfig:
@@ -142,26 +139,59 @@ def _config(args: Args, noisy: bool) -> PegInHoleConfig:
     return PegInHoleConfig(max_steps=args.max_steps, pose_noise_std=noise, **grid)
 
 
-def run(args: Args) -> dict[str, Any]:
-    """Train, evaluate, write the artefacts; return the metrics."""
-    torch.set_num_threads(1)
-    run_dir = Path(args.out_dir) / args.name
-    run_dir.mkdir(parents=True, exist_ok=True)
-    checkpoint_path = run_dir / "checkpoint.pt"
+def check_args(args: Args) -> PegLearning:
+    """Check every argument (before any work) and return the learning settings.
+
+    Raises:
+        ValueError: an argument is out of range; the message names it and its range.
+    """
+    check_name("name", args.name)
+    for name in ("num_envs", "rounds", "max_steps", "eval_every", "eval_episodes"):
+        check_int(name, getattr(args, name), low=1)
+    check_int("seed", args.seed, low=0)
+    check_int("planning_steps", args.planning_steps, low=0)
+    check_int("final_episodes", args.final_episodes, low=0)
+    check_int("particles", args.particles, low=NUM_CONTACT_CLASSES, why=_MODES)
+    check_choice("step_size", args.step_size, get_args(StepSize))
+    check_choice("exploration", args.exploration, get_args(Exploration))
+    check_float("alpha", args.alpha, low=0.0, high=1.0, low_open=True)
+    check_float("gamma", args.gamma, low=0.0, high=1.0)
+    check_float("epsilon", args.epsilon, low=0.0, high=1.0)
+    check_float("planning_penalty", args.planning_penalty, low=0.0)
+    check_float("shaping", args.shaping, low=0.0)
+    check_float("vision_sigma", args.vision_sigma, low=0.0, low_open=True)
+    _config(args, noisy=True)  # the grid edges, checked by PegInHoleConfig
     learning = PegLearning(
         alpha=args.alpha,
-        step_size=cast(StepSize, args.step_size),  # checked by DynaQ
+        step_size=args.step_size,
         planning_steps=args.planning_steps,
         planning_penalty=args.planning_penalty,
         gamma=args.gamma,
         epsilon=args.epsilon,
-        exploration=cast(Exploration, args.exploration),  # checked by DynaQ
+        exploration=args.exploration,
         shaping=args.shaping,
     )
+    learning.agent(seed=args.seed)  # DynaQ checks the settings too
+    return learning
+
+
+def run(args: Args) -> dict[str, Any]:
+    """Train, evaluate, write the artefacts; return the metrics.
+
+    A new run gets a new folder (:func:`~torchcontact.experiments.new_run_dir`); with
+    ``args.resume`` the run continues in that folder from its checkpoint.
+
+    Raises:
+        ValueError: an argument is out of range (before any work), or the checkpoint to resume
+            is damaged or was written with other arguments.
+    """
+    learning = check_args(args)
+    torch.set_num_threads(1)
+    run_dir, saved = open_run(args, keys=_SAVED, free=_EVALUATION)
+    checkpoint_path = run_dir / CHECKPOINT
     agent = learning.agent(seed=args.seed)
     shaping = learning.potential_shaping()
     start, parts, history = 0, [], []
-    saved = load_checkpoint(checkpoint_path, args, free=_EVALUATION) if args.resume else None
     if saved is not None:
         agent.load_state_dict(saved["agent"])
         start, parts, history = saved["round"], [saved["transitions"]], saved["history"]
@@ -211,7 +241,8 @@ def run(args: Args) -> dict[str, Any]:
             writer.add_scalar("eval/greedy_success", row["greedy_success"], episodes)
         history.append(row)
         parts = [PegTransitions.concat(parts)]  # one piece: saved now, fitted on at the end
-        torch.save(
+        save_checkpoint(
+            checkpoint_path,
             {
                 "args": dataclasses.asdict(args),
                 "agent": agent.state_dict(),
@@ -219,7 +250,6 @@ def run(args: Args) -> dict[str, Any]:
                 "transitions": parts[0],
                 "history": history,
             },
-            checkpoint_path,
         )
     data = PegTransitions.concat(parts)
     noisy = _config(args, noisy=True)
@@ -305,7 +335,7 @@ def _plot_graph(graph: ManipulationGraph, path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     """Parse the command line and run."""
-    result = run(parse_dataclass(Args, argv, __doc__.splitlines()[0]))
+    result = run(tyro.cli(Args, args=argv, description=__doc__.splitlines()[0]))
     print(Path(result["run_dir"], "results.md").read_text())
 
 

@@ -1,10 +1,10 @@
 """A neural Q function on the RBPF belief for the peg-in-hole task, trained DQN-style.
 
     python train/dyna_q_peg.py            # first: the tabular Q, graph and belief model
-    python train/neural_q_peg.py --rounds 20
+    python train/neural_q_peg.py --tabular-run runs/dyna_q_peg__0__<unix time> --rounds 20
 
-Starts from a finished ``dyna_q_peg`` run (``--tabular-run``): its Q table, manipulation
-graph and fitted belief model. The network (:class:`~torchcontact.rl.QNetwork`) reads
+Starts from a finished ``dyna_q_peg`` run (``--tabular-run``, its run folder): its Q table,
+manipulation graph and fitted belief model. The network (:class:`~torchcontact.rl.QNetwork`) reads
 :func:`~torchcontact.experiments.belief_features` of the filter's belief; its QMDP head is the
 Q table and its residual MLP starts at zero, so before any update it acts exactly as QMDP over
 the RBPF belief. It is then trained with double DQN (replay buffer, target network, Huber
@@ -14,8 +14,10 @@ learns unless ``--train-table``: the head stays the tabular Q, so the network le
 belief's spread and pose add to QMDP. The greedy network
 is evaluated every few rounds on validation episodes; the best one (the untrained network
 included) is kept. Finally oracle, raw, QMDP and neural Q are compared on the same fresh
-episodes. Writes TensorBoard logs, checkpoints (resumed exactly), ``network.pt`` and
-``results.md`` to ``runs/<name>``.
+episodes. Writes TensorBoard logs, checkpoints, ``network.pt`` and ``results.md`` to a new
+run folder, ``runs/neural_q_peg__<seed>__<unix time>``; a killed run continues where its last
+checkpoint left it, to the same result, with ``--resume <that folder>`` (the same arguments;
+``--rounds`` may grow).
 """
 
 from __future__ import annotations
@@ -27,21 +29,27 @@ from typing import Any
 
 import numpy as np
 import torch
+import tyro
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from torchcontact.envs import PegInHole2DVector, PegInHoleBeliefModel, PegInHoleFilter
 from torchcontact.experiments import (
+    CHECKPOINT,
     NUM_BELIEF_FEATURES,
     PotentialShaping,
     QLookup,
     belief_features,
+    check_float,
+    check_int,
+    check_name,
     evaluate,
     evaluate_settings,
-    load_checkpoint,
-    parse_dataclass,
+    open_run,
+    read_checkpoint,
     results_table,
     round_seed,
+    save_checkpoint,
 )
 from torchcontact.rl import (
     DynaQ,
@@ -53,54 +61,59 @@ from torchcontact.rl import (
 )
 
 DTYPE = torch.float32
+#: The checkpoint's entries besides ``"args"``.
+_SAVED = ("round", "online", "target", "optimizer", "buffer", "counters", "history", "best")
 
 
 @dataclasses.dataclass(frozen=True)
 class Args:
     """Arguments of the neural-Q peg-in-hole experiment."""
 
-    name: str = dataclasses.field(default="neural_q_peg", metadata={"help": "run name"})
-    out_dir: str = dataclasses.field(default="runs", metadata={"help": "parent of the run folder"})
-    tabular_run: str = dataclasses.field(
-        default="runs/dyna_q_peg",
-        metadata={"help": "folder of a finished dyna_q_peg run (checkpoint, belief model)"},
-    )
-    seed: int = dataclasses.field(default=0, metadata={"help": "seed of the episodes and buffer"})
-    num_envs: int = dataclasses.field(default=16, metadata={"help": "episodes per round"})
-    rounds: int = dataclasses.field(default=20, metadata={"help": "training rounds"})
-    particles: int = dataclasses.field(default=64, metadata={"help": "RBPF particles"})
-    hidden: int = dataclasses.field(default=64, metadata={"help": "width of the 2 hidden layers"})
-    learning_rate: float = dataclasses.field(default=1e-4, metadata={"help": "Adam step size"})
-    train_table: bool = dataclasses.field(
-        default=False,
-        metadata={"help": "also train the QMDP head (default: frozen; only the residual learns)"},
-    )
-    buffer_size: int = dataclasses.field(default=10_000, metadata={"help": "replay capacity"})
-    batch_size: int = dataclasses.field(default=128, metadata={"help": "replay batch size"})
-    learning_starts: int = dataclasses.field(
-        default=1_000, metadata={"help": "transitions stored before the first update"}
-    )
-    updates_per_step: int = dataclasses.field(
-        default=1, metadata={"help": "gradient steps per batched environment step"}
-    )
-    target_every: int = dataclasses.field(
-        default=250, metadata={"help": "gradient steps between target-network copies"}
-    )
-    epsilon_start: float = dataclasses.field(default=0.1, metadata={"help": "initial ε"})
-    epsilon_end: float = dataclasses.field(default=0.02, metadata={"help": "final ε"})
-    epsilon_steps: int = dataclasses.field(
-        default=20_000, metadata={"help": "transitions over which ε decays"}
-    )
-    eval_every: int = dataclasses.field(default=4, metadata={"help": "rounds between evals"})
-    eval_episodes: int = dataclasses.field(
-        default=48, metadata={"help": "validation episodes per evaluation"}
-    )
-    final_episodes: int = dataclasses.field(
-        default=100, metadata={"help": "episodes per setting in the final comparison"}
-    )
-    resume: bool = dataclasses.field(
-        default=True, metadata={"help": "continue from the run folder's checkpoint"}
-    )
+    tabular_run: str
+    """folder of a finished dyna_q_peg run (checkpoint, belief model), e.g.
+    runs/dyna_q_peg__0__<unix time>"""
+    name: str = "neural_q_peg"
+    """experiment name: a new run writes to <out-dir>/<name>__<seed>__<unix time>"""
+    out_dir: str = "runs"
+    """parent of the new run folders"""
+    resume: str | None = None
+    """a run folder to continue from its checkpoint (the same arguments; rounds may grow)"""
+    seed: int = 0
+    """seed of the episodes and buffer"""
+    num_envs: int = 16
+    """episodes per round"""
+    rounds: int = 20
+    """training rounds"""
+    particles: int = 64
+    """RBPF particles"""
+    hidden: int = 64
+    """width of the 2 hidden layers"""
+    learning_rate: float = 1e-4
+    """Adam step size"""
+    train_table: bool = False
+    """also train the QMDP head (default: frozen; only the residual learns)"""
+    buffer_size: int = 10_000
+    """replay capacity"""
+    batch_size: int = 128
+    """replay batch size"""
+    learning_starts: int = 1_000
+    """transitions stored before the first update"""
+    updates_per_step: int = 1
+    """gradient steps per batched environment step"""
+    target_every: int = 250
+    """gradient steps between target-network copies"""
+    epsilon_start: float = 0.1
+    """initial ε"""
+    epsilon_end: float = 0.02
+    """final ε"""
+    epsilon_steps: int = 20_000
+    """transitions over which ε decays"""
+    eval_every: int = 4
+    """rounds between evals"""
+    eval_episodes: int = 48
+    """validation episodes per evaluation"""
+    final_episodes: int = 100
+    """episodes per setting in the final comparison"""
 
 
 @dataclasses.dataclass
@@ -113,13 +126,13 @@ class _Tabular:
 
 
 def _load_tabular(folder: Path) -> _Tabular:
-    checkpoint, model_path = folder / "checkpoint.pt", folder / "belief_model.pt"
+    checkpoint, model_path = folder / CHECKPOINT, folder / "belief_model.pt"
     for path in (checkpoint, model_path):
         if not path.is_file():
             raise ValueError(
                 f"tabular_run {str(folder)!r} has no {path.name}: run train/dyna_q_peg.py first"
             )
-    saved = torch.load(checkpoint, weights_only=False)
+    saved = read_checkpoint(checkpoint, keys=("args", "agent", "round"))
     if saved["round"] < saved["args"]["rounds"]:
         raise ValueError(f"tabular_run {str(folder)!r} has not finished its rounds")
     model = torch.load(model_path, weights_only=False)
@@ -128,13 +141,43 @@ def _load_tabular(folder: Path) -> _Tabular:
     )
 
 
-def run(args: Args) -> dict[str, Any]:
-    """Train the network from the tabular run, evaluate, write the artefacts; return metrics."""
-    torch.set_num_threads(1)
-    run_dir = Path(args.out_dir) / args.name
-    run_dir.mkdir(parents=True, exist_ok=True)
-    checkpoint_path = run_dir / "checkpoint.pt"
+def check_args(args: Args) -> _Tabular:
+    """Check every argument (before any work) and return what the tabular run gives.
+
+    Raises:
+        ValueError: an argument is out of range (the message names it and its range), or
+            ``tabular_run`` is not a finished ``dyna_q_peg`` run.
+    """
+    check_name("name", args.name)
+    for name in ("num_envs", "rounds", "hidden", "buffer_size", "batch_size", "target_every"):
+        check_int(name, getattr(args, name), low=1)
+    for name in ("eval_every", "eval_episodes", "final_episodes"):
+        check_int(name, getattr(args, name), low=1)
+    for name in ("seed", "learning_starts", "updates_per_step", "epsilon_steps"):
+        check_int(name, getattr(args, name), low=0)
+    check_float("learning_rate", args.learning_rate, low=0.0, low_open=True)
+    check_float("epsilon_start", args.epsilon_start, low=0.0, high=1.0)
+    check_float("epsilon_end", args.epsilon_end, low=0.0, high=1.0)
     tabular = _load_tabular(Path(args.tabular_run))
+    K = tabular.model.num_modes
+    check_int("particles", args.particles, low=K, why="the belief model's number of modes K")
+    return tabular
+
+
+def run(args: Args) -> dict[str, Any]:
+    """Train the network from the tabular run, evaluate, write the artefacts; return metrics.
+
+    A new run gets a new folder (:func:`~torchcontact.experiments.new_run_dir`); with
+    ``args.resume`` the run continues in that folder from its checkpoint.
+
+    Raises:
+        ValueError: an argument is out of range (before any work), or the checkpoint to resume
+            is damaged or was written with other arguments.
+    """
+    tabular = check_args(args)
+    torch.set_num_threads(1)
+    run_dir, saved = open_run(args, keys=_SAVED)
+    checkpoint_path = run_dir / CHECKPOINT
     agent, model = tabular.agent, tabular.model
     config = model.task.config
     lookup = QLookup(agent, model.task.states)
@@ -153,7 +196,6 @@ def run(args: Args) -> dict[str, Any]:
     eval_env = PegInHole2DVector(num_envs=args.eval_episodes, config=config, observation="noisy")
     start, counters, history = 0, {"transitions": 0, "updates": 0}, []
     best: dict[str, Any] = {}
-    saved = load_checkpoint(checkpoint_path, args) if args.resume else None
     if saved is not None:
         online.load_state_dict(saved["online"])
         target.load_state_dict(saved["target"])
@@ -194,7 +236,8 @@ def run(args: Args) -> dict[str, Any]:
             if candidate["success"] > best["success"]:
                 best = candidate
         history.append(row)
-        torch.save(
+        save_checkpoint(
+            checkpoint_path,
             {
                 "args": dataclasses.asdict(args),
                 "round": r + 1,
@@ -206,7 +249,6 @@ def run(args: Args) -> dict[str, Any]:
                 "history": history,
                 "best": best,
             },
-            checkpoint_path,
         )
     online.load_state_dict(best["state"])
     evaluations = evaluate_settings(
@@ -359,7 +401,7 @@ def _train_round(
 
 def main(argv: list[str] | None = None) -> None:
     """Parse the command line and run."""
-    result = run(parse_dataclass(Args, argv, __doc__.splitlines()[0]))
+    result = run(tyro.cli(Args, args=argv, description=__doc__.splitlines()[0]))
     print(Path(result["run_dir"], "results.md").read_text())
 
 

@@ -24,6 +24,9 @@ Ground truth is the simulator (exact LCP fallback), with per-trial friction and 
 Usage::
 
     python train/triangle_grasp.py --trials 64 --name triangle_grasp
+
+writes TensorBoard logs, ``results.md``, ``metrics.json`` and the plots to a new run folder,
+``runs/triangle_grasp__<seed>__<unix time>``.
 """
 
 from __future__ import annotations
@@ -42,12 +45,13 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import torch
+import tyro
 from matplotlib.figure import Figure
 from torch import Tensor
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from torchcontact.experiments import parse_dataclass
+from torchcontact.experiments import check_float, check_int, check_name, new_run_dir
 from torchcontact.filters import (
     RBPF,
     Gaussian,
@@ -90,59 +94,57 @@ PF_NOISE_STD = (2e-4, 2e-4, 2e-3, 0.02, 0.02, 0.2)  # per step: x, y, θ, vx, vy
 CALIBRATION_PARTICLES = (8, 64)  # plain-PF particle counts timed to fit time(N) = a + b N
 CALIBRATION_ROUNDS = 2  # PF runs at fitted particle counts, at most
 CALIBRATION_TOLERANCE = 0.1  # relative miss of the RBPF's CPU time that ends the calibration
+MIN_STEPS = 8  # time steps that give every phase of schedule() at least one step
 
 
 @dataclass
 class Args:
     """Arguments of the triangle-grasp tracking experiment."""
 
-    name: str = dataclasses.field(default="triangle_grasp", metadata={"help": "run name"})
-    out_dir: str = dataclasses.field(default="runs", metadata={"help": "parent of the run folder"})
-    seed: int = dataclasses.field(default=0, metadata={"help": "seed of the evaluation trials"})
-    trials: int = dataclasses.field(default=64, metadata={"help": "evaluation trials"})
-    train_trials: int = dataclasses.field(
-        default=64, metadata={"help": "training rollouts for the mode table and transition"}
-    )
-    steps: int = dataclasses.field(default=80, metadata={"help": "time steps per trial (h=0.01)"})
-    rbpf_particles: int = dataclasses.field(default=200, metadata={"help": "RBPF particles"})
-    pf_particles: int = dataclasses.field(
-        default=0,
-        metadata={"help": "plain PF particles; 0: as many as fit in the RBPF's time per step"},
-    )
-    reference_pf: bool = dataclasses.field(
-        default=True, metadata={"help": "also run the plain PF with the RBPF's particle count"}
-    )
-    rbpf_pose_noise: float = dataclasses.field(
-        default=1e-4, metadata={"help": "RBPF process noise std of x, y (m) and θ (rad) per step"}
-    )
-    rbpf_twist_noise: float = dataclasses.field(
-        default=3e-3,
-        metadata={"help": "RBPF process noise std of vx, vy (m/s) per step; ω gets 10x (rad/s)"},
-    )
-    gap_sigma: float = dataclasses.field(
-        default=1e-4,
-        metadata={"help": "std (m) of the RBPF's zero-gap projection; 0 disables the projection"},
-    )
-    vision_sigma: float = dataclasses.field(
-        default=0.004, metadata={"help": "vision position noise std, metres"}
-    )
-    vision_sigma_theta: float = dataclasses.field(
-        default=0.03, metadata={"help": "vision angle noise std, radians"}
-    )
-    false_positive: float = dataclasses.field(default=0.05, metadata={"help": "tactile FP rate"})
-    false_negative: float = dataclasses.field(default=0.1, metadata={"help": "tactile FN rate"})
-    friction_low: float = dataclasses.field(default=0.4, metadata={"help": "min true friction"})
-    friction_high: float = dataclasses.field(default=0.6, metadata={"help": "max true friction"})
-    friction_model: float = dataclasses.field(
-        default=0.5, metadata={"help": "friction assumed by the filters"}
-    )
-    x_offset: float = dataclasses.field(
-        default=0.012, metadata={"help": "max |initial x offset| of the triangle, metres"}
-    )
-    tilt: float = dataclasses.field(
-        default=0.15, metadata={"help": "max |initial rotation| of the triangle, radians"}
-    )
-    fast: bool = dataclasses.field(default=False, metadata={"help": "tiny budget (tests)"})
+    name: str = "triangle_grasp"
+    """experiment name: the run writes to <out-dir>/<name>__<seed>__<unix time>"""
+    out_dir: str = "runs"
+    """parent of the run folders"""
+    seed: int = 0
+    """seed of the evaluation trials"""
+    trials: int = 64
+    """evaluation trials"""
+    train_trials: int = 64
+    """training rollouts for the mode table and transition"""
+    steps: int = 80
+    """time steps per trial (h=0.01)"""
+    rbpf_particles: int = 200
+    """RBPF particles"""
+    pf_particles: int = 0
+    """plain PF particles; 0: as many as fit in the RBPF's time per step"""
+    reference_pf: bool = True
+    """also run the plain PF with the RBPF's particle count"""
+    rbpf_pose_noise: float = 1e-4
+    """RBPF process noise std of x, y (m) and θ (rad) per step"""
+    rbpf_twist_noise: float = 3e-3
+    """RBPF process noise std of vx, vy (m/s) per step; ω gets 10x (rad/s)"""
+    gap_sigma: float = 1e-4
+    """std (m) of the RBPF's zero-gap projection; 0 disables the projection"""
+    vision_sigma: float = 0.004
+    """vision position noise std, metres"""
+    vision_sigma_theta: float = 0.03
+    """vision angle noise std, radians"""
+    false_positive: float = 0.05
+    """tactile FP rate"""
+    false_negative: float = 0.1
+    """tactile FN rate"""
+    friction_low: float = 0.4
+    """min true friction"""
+    friction_high: float = 0.6
+    """max true friction"""
+    friction_model: float = 0.5
+    """friction assumed by the filters"""
+    x_offset: float = 0.012
+    """max |initial x offset| of the triangle, metres"""
+    tilt: float = 0.15
+    """max |initial rotation| of the triangle, radians"""
+    fast: bool = False
+    """tiny budget (tests)"""
 
 
 # ----------------------------------------------------------------------------------------------
@@ -185,7 +187,11 @@ def tactile_array(args: Args) -> TactileArray:
 
 
 def schedule(steps: int) -> tuple[slice, slice, Tensor]:
-    """Closing and opening step ranges and the ``(T,)`` bool occlusion mask."""
+    """Closing and opening step ranges and the ``(T,)`` bool occlusion mask.
+
+    Every phase (approach, closing, hold, opening, occlusion) has a step from
+    ``steps >= MIN_STEPS`` on.
+    """
     close = slice(steps // 8, steps // 2)
     opening = slice(int(0.78 * steps), steps)
     occluded = torch.zeros(steps, dtype=torch.bool)
@@ -722,13 +728,42 @@ def evaluate(
 # the experiment
 
 
+def check_args(args: Args) -> None:
+    """Check every argument before any work (``rbpf_particles >= K`` is checked once the
+    training rollouts have given the number of modes K).
+
+    Raises:
+        ValueError: an argument is out of range; the message names it and its range.
+    """
+    check_name("name", args.name)
+    for name in ("trials", "train_trials", "rbpf_particles"):
+        check_int(name, getattr(args, name), low=1)
+    check_int("seed", args.seed, low=0)
+    check_int("steps", args.steps, low=MIN_STEPS, why="every phase of the grasp schedule")
+    check_int("pf_particles", args.pf_particles, low=0)
+    for name in ("rbpf_pose_noise", "rbpf_twist_noise", "vision_sigma", "vision_sigma_theta"):
+        check_float(name, getattr(args, name), low=0.0, low_open=True)
+    for name in ("gap_sigma", "friction_model", "x_offset", "tilt"):
+        check_float(name, getattr(args, name), low=0.0)
+    for name in ("false_positive", "false_negative"):
+        check_float(name, getattr(args, name), low=0.0, high=1.0, high_open=True)
+    check_float("friction_low", args.friction_low, low=0.0)
+    check_float("friction_high", args.friction_high, low=args.friction_low)
+
+
 def run(args: Args) -> dict[str, Any]:
     """Simulate the trials, run every estimator, write logs, table and plots.
+
+    The run writes to a new folder, :func:`~torchcontact.experiments.new_run_dir`.
 
     Returns:
         ``{"metrics": {method: {metric: float}}, "run_dir": str, "pf_particles": int,
         "calibration": {particles: seconds}, "ratio_pos_occ": float, ...}`` (see
         :func:`summarize`).
+
+    Raises:
+        ValueError: an argument is out of range (before the training rollouts; the RBPF's
+            particle count right after them).
     """
     if args.fast:
         args = dataclasses.replace(
@@ -738,15 +773,20 @@ def run(args: Args) -> dict[str, Any]:
             steps=min(args.steps, 48),
             rbpf_particles=min(args.rbpf_particles, 20),
         )
+    check_args(args)
     torch.manual_seed(args.seed)
-    run_dir = Path(args.out_dir) / args.name
-    run_dir.mkdir(parents=True, exist_ok=True)
-    writer = SummaryWriter(str(run_dir))
     progress = tqdm(total=len(METHODS) + 3, desc="triangle grasp")
-
     trials = simulate(args)
     model = contact_model(args, trials)
+    check_int(
+        "rbpf_particles",
+        args.rbpf_particles,
+        low=model.num_modes,
+        why="the number of modes K the training rollouts gave the RBPF",
+    )
     progress.update()
+    run_dir = new_run_dir(out_dir=args.out_dir, name=args.name, seed=args.seed)
+    writer = SummaryWriter(str(run_dir))
 
     def generator(offset: int) -> torch.Generator:
         return torch.Generator().manual_seed(args.seed + offset)
@@ -1082,7 +1122,7 @@ def save_plots(
 def main(argv: list[str] | None = None) -> None:
     """Parse the command line and run (on one thread: the timings compare single-threaded work)."""
     torch.set_num_threads(1)
-    result = run(parse_dataclass(Args, argv, __doc__.splitlines()[0]))
+    result = run(tyro.cli(Args, args=argv, description=__doc__.splitlines()[0]))
     print(Path(result["run_dir"], "results.md").read_text())
 
 

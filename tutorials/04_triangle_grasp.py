@@ -194,7 +194,8 @@ print(grasp.results_table(metrics))
 # it times the PF with 8 and 64 particles on the same trials, fits `time = a + b·N` and runs it
 # with the `N` that matches the RBPF's measured time (`pf`); `pf_same_n` is the PF with the
 # RBPF's particle count (slower). The numbers in the README come from
-# `python train/triangle_grasp.py --trials 64`.
+# `python train/triangle_grasp.py --trials 64`. Each run writes to a new folder,
+# `<out_dir>/<name>__<seed>__<unix time>`.
 
 # %%
 small = grasp.Args(

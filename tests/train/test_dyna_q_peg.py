@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import dataclasses
+import re
+import time
 from pathlib import Path
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 import pytest
@@ -12,7 +15,7 @@ import torch
 
 from tests.train import load_script
 from torchcontact.envs import PegInHole2DVector
-from torchcontact.experiments import PegLearning, PotentialShaping, load_checkpoint, round_seed
+from torchcontact.experiments import PegLearning, PotentialShaping, round_seed
 
 
 def _tiny(module: ModuleType, out: Path, **changes: object) -> object:
@@ -59,37 +62,180 @@ def test_a_finished_run_is_evaluated_again_without_training(
     assert "No final evaluation." in (run_dir / "results.md").read_text()
     q_table = torch.load(run_dir / "q_table.pt")
     again = module.run(
-        _tiny(module, tmp_path, rounds=1, final_episodes=2, particles=30, vision_sigma=0.004)
+        _tiny(
+            module,
+            tmp_path,
+            rounds=1,
+            final_episodes=2,
+            particles=30,
+            vision_sigma=0.004,
+            resume=str(run_dir),
+        )
     )
+    assert again["run_dir"] == str(run_dir)
     assert set(again["evaluations"]) == {"oracle", "raw", "qmdp"}
     assert again["history"] == trained["history"]
     assert torch.equal(torch.load(run_dir / "q_table.pt"), q_table)
-    with pytest.raises(ValueError, match="other arguments"):  # a training argument
-        module.run(_tiny(module, tmp_path, rounds=1, final_episodes=0, epsilon=0.2))
-    with pytest.raises(ValueError, match="free names fields"):
-        load_checkpoint(run_dir / "checkpoint.pt", _tiny(module, tmp_path), free=("sigma",))
+    refused = "other arguments .*: epsilon: checkpoint 0.1, now 0.2$"  # a training argument
+    with pytest.raises(ValueError, match=refused):
+        module.run(
+            _tiny(module, tmp_path, rounds=1, final_episodes=0, epsilon=0.2, resume=str(run_dir))
+        )
 
 
 def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
     module: ModuleType, tmp_path: Path
 ) -> None:
-    straight = module.run(_tiny(module, tmp_path / "a"))
-    module.run(_tiny(module, tmp_path / "b", rounds=1))
-    resumed = module.run(_tiny(module, tmp_path / "b"))
-    assert resumed["history"] == straight["history"]
-    q_a = torch.load(Path(straight["run_dir"]) / "q_table.pt")
-    q_b = torch.load(Path(resumed["run_dir"]) / "q_table.pt")
+    straight = module.run(_tiny(module, tmp_path))
+    stopped = module.run(_tiny(module, tmp_path, rounds=1))
+    resumed = module.run(_tiny(module, tmp_path, resume=stopped["run_dir"]))
+    assert resumed["run_dir"] == stopped["run_dir"] != straight["run_dir"]
+    _assert_identical(straight, resumed)
+    with pytest.raises(
+        ValueError,
+        match=r"vision_sigma may differ\): seed: checkpoint 0, now 3; "
+        r"alpha: checkpoint 0\.1, now 0\.5$",
+    ):
+        module.run(_tiny(module, tmp_path, alpha=0.5, seed=3, resume=stopped["run_dir"]))
+
+
+def _assert_identical(a: dict[str, Any], b: dict[str, Any]) -> None:
+    """Two runs' results and final Q tables are bit-identical."""
+    assert a["history"] == b["history"]
+    assert a["evaluations"] == b["evaluations"]
+    assert a["num_states"] == b["num_states"]
+    q_a = torch.load(Path(a["run_dir"]) / "q_table.pt")
+    q_b = torch.load(Path(b["run_dir"]) / "q_table.pt")
     assert torch.equal(q_a, q_b)
-    with pytest.raises(ValueError, match="other arguments"):
-        module.run(_tiny(module, tmp_path / "b", alpha=0.5))
+    graph = [(Path(r["run_dir"]) / "graph.json").read_text() for r in (a, b)]
+    assert graph[0] == graph[1]  # (results.md differs: it holds timings)
+
+
+class _KilledError(Exception):
+    """Stands for a kill of the process."""
+
+
+def test_a_run_killed_after_any_checkpoint_resumes_to_an_identical_result(
+    module: ModuleType, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    straight = module.run(_tiny(module, tmp_path, rounds=3))
+    save = module.save_checkpoint
+    for killed_after in (1, 2):
+        writes: list[Path] = []
+
+        def save_then_kill(
+            path: Path,
+            payload: dict[str, Any],
+            writes: list[Path] = writes,
+            after: int = killed_after,
+        ) -> None:
+            save(path, payload)
+            writes.append(path.parent)
+            if len(writes) == after:
+                raise _KilledError
+
+        monkeypatch.setattr(module, "save_checkpoint", save_then_kill)
+        with pytest.raises(_KilledError):
+            module.run(_tiny(module, tmp_path, rounds=3))
+        monkeypatch.setattr(module, "save_checkpoint", save)
+        resumed = module.run(_tiny(module, tmp_path, rounds=3, resume=str(writes[0])))
+        _assert_identical(straight, resumed)
+
+
+def test_a_kill_during_the_checkpoint_write_keeps_the_previous_checkpoint(
+    module: ModuleType, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    straight = module.run(_tiny(module, tmp_path, rounds=3))
+    stopped = module.run(_tiny(module, tmp_path, rounds=2))
+    checkpoint = Path(stopped["run_dir"]) / "checkpoint.pt"
+    before = checkpoint.read_bytes()
+
+    def killed_mid_write(payload: object, file: Any) -> None:
+        file.write(before[: len(before) // 2])
+        raise _KilledError
+
+    monkeypatch.setattr(torch, "save", killed_mid_write)
+    with pytest.raises(_KilledError):  # round 3's checkpoint write is killed halfway
+        module.run(_tiny(module, tmp_path, rounds=3, resume=stopped["run_dir"]))
+    monkeypatch.undo()
+    assert checkpoint.read_bytes() == before
+    assert not [p for p in checkpoint.parent.iterdir() if p.suffix == ".tmp"]
+    resumed = module.run(_tiny(module, tmp_path, rounds=3, resume=stopped["run_dir"]))
+    _assert_identical(straight, resumed)
+
+
+def test_a_damaged_checkpoint_is_named_when_resuming(module: ModuleType, tmp_path: Path) -> None:
+    stopped = module.run(_tiny(module, tmp_path, rounds=1, final_episodes=0))
+    checkpoint = Path(stopped["run_dir"]) / "checkpoint.pt"
+    data = checkpoint.read_bytes()
+    checkpoint.write_bytes(data[: len(data) // 3])
+    with pytest.raises(ValueError, match=f"{checkpoint}: unreadable or damaged checkpoint"):
+        module.run(_tiny(module, tmp_path, resume=stopped["run_dir"]))
+    torch.save({"args": dataclasses.asdict(_tiny(module, tmp_path, rounds=1))}, checkpoint)
+    with pytest.raises(ValueError, match=r"lacks the entries \['agent', 'round'"):
+        module.run(_tiny(module, tmp_path, resume=stopped["run_dir"]))
+    with pytest.raises(ValueError, match=r"resume: .* is not a run folder"):
+        module.run(_tiny(module, tmp_path, resume=str(tmp_path / "nothing")))
+
+
+def test_each_run_gets_its_own_folder(module: ModuleType, tmp_path: Path) -> None:
+    args = _tiny(module, tmp_path, rounds=1, final_episodes=0, seed=4)
+    first, second = module.run(args), module.run(args)  # most likely in the same second
+    names = [Path(first["run_dir"]).name, Path(second["run_dir"]).name]
+    assert names[0] != names[1]
+    for name in names:
+        assert re.fullmatch(r"dyna_q_peg__4__\d+(_1)?", name), name
+    assert {p.name for p in tmp_path.iterdir()} == set(names)
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"particles": 16}, r"particles: expected an int >= 24 \(the belief model's number of "),
+        ({"exploration": "foo"}, r"exploration: expected one of \('uniform', 'least_tried'\)"),
+        ({"step_size": "decay"}, r"step_size: expected one of \('constant', 'visits'\)"),
+        ({"rounds": -1}, r"rounds: expected an int >= 1, got -1"),
+        ({"rounds": 0}, r"rounds: expected an int >= 1, got 0"),
+        ({"num_envs": 0}, r"num_envs: expected an int >= 1"),
+        ({"eval_every": 0}, r"eval_every: expected an int >= 1"),
+        ({"final_episodes": -1}, r"final_episodes: expected an int >= 0"),
+        ({"alpha": 0.0}, r"alpha: expected a finite number in \(0.0, 1.0\]"),
+        ({"gamma": 1.5}, r"gamma: expected a finite number in \[0.0, 1.0\]"),
+        ({"epsilon": -0.1}, r"epsilon: expected a finite number"),
+        ({"vision_sigma": 0.0}, r"vision_sigma: expected a finite number in \(0.0, inf\]"),
+        ({"shaping": float("nan")}, r"shaping: expected a finite number"),
+        ({"planning_steps": -1}, r"planning_steps: expected an int >= 0"),
+        ({"name": "a/b"}, r"name: expected a non-empty name"),
+        ({"y_edges": "0,a"}, r"y_edges must be comma-separated numbers"),
+    ],
+)
+def test_bad_arguments_fail_before_any_work(
+    module: ModuleType, tmp_path: Path, change: dict[str, object], message: str
+) -> None:
+    clock = time.perf_counter()
+    with pytest.raises(ValueError, match=message):
+        module.run(_tiny(module, tmp_path / "runs", **change))
+    assert time.perf_counter() - clock < 5.0
+    assert not (tmp_path / "runs").exists()  # no run folder
 
 
 def test_help_lists_the_arguments(module: ModuleType, capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         module.main(["--help"])
     text = capsys.readouterr().out
-    assert "--planning-steps" in text
-    assert "--no-resume" in text
+    for flag in ("--planning-steps", "--resume", "--step-size {constant,visits}", "--no-sweep"):
+        assert flag in text
+    assert "Dyna-Q planning n" in text  # the fields' help texts
+
+
+def test_main_parses_the_command_line(
+    module: ModuleType, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    received: list[object] = []
+    monkeypatch.setattr(module, "run", lambda args: received.append(args) or {"run_dir": ""})
+    monkeypatch.setattr(Path, "read_text", lambda self: "")
+    module.main(["--rounds", "3", "--no-sweep", "--resume", str(tmp_path)])
+    assert received == [module.Args(rounds=3, sweep=False, resume=str(tmp_path))]
 
 
 def test_defaults_are_the_shared_peg_learning_settings(module: ModuleType) -> None:
@@ -114,13 +260,6 @@ def test_grid_edges_from_the_command_line(module: ModuleType) -> None:
         module._config(module.Args(y_edges="0,a"), noisy=False)
     with pytest.raises(ValueError, match="x_edges"):
         module._config(module.Args(x_edges="0.02,0.01"), noisy=False)
-
-
-def test_bad_choices_name_the_argument(module: ModuleType, tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match="exploration must be 'uniform' or 'least_tried'"):
-        module.run(_tiny(module, tmp_path, exploration="greedy"))
-    with pytest.raises(ValueError, match="step_size must be 'constant' or 'visits'"):
-        module.run(_tiny(module, tmp_path, step_size="decay"))
 
 
 def test_rounds_play_distinct_episodes() -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import time
 from pathlib import Path
 from types import ModuleType
 from typing import Any
@@ -105,16 +106,55 @@ def test_the_qmdp_head_stays_the_tabular_q_unless_asked(
 def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
     module: ModuleType, tabular_run: Path, straight: dict[str, Any], tmp_path: Path
 ) -> None:
-    module.run(_tiny(module, tmp_path / "b", tabular_run, rounds=1))
-    resumed = module.run(_tiny(module, tmp_path / "b", tabular_run))
+    stopped = module.run(_tiny(module, tmp_path, tabular_run, rounds=1))
+    resumed = module.run(_tiny(module, tmp_path, tabular_run, resume=stopped["run_dir"]))
+    assert resumed["run_dir"] == stopped["run_dir"]
     assert resumed["history"] == straight["history"]
+    assert resumed["best_round"] == straight["best_round"]
+    assert resumed["evaluations"] == straight["evaluations"]
     a = torch.load(Path(straight["run_dir"]) / "network.pt")
     b = torch.load(Path(resumed["run_dir"]) / "network.pt")
+    assert a.keys() == b.keys()
     assert all(torch.equal(a[k], b[k]) for k in a)
-    with pytest.raises(ValueError, match="other arguments"):
-        module.run(_tiny(module, tmp_path / "b", tabular_run, learning_rate=1e-2))
+    refused = r"other arguments \(rounds may grow\): learning_rate: checkpoint 0\.0001, now 0\.01$"
+    with pytest.raises(ValueError, match=refused):
+        module.run(
+            _tiny(module, tmp_path, tabular_run, learning_rate=1e-2, resume=stopped["run_dir"])
+        )
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"particles": 16}, r"particles: expected an int >= 24 \(the belief model's number of "),
+        ({"rounds": -1}, r"rounds: expected an int >= 1, got -1"),
+        ({"batch_size": 0}, r"batch_size: expected an int >= 1"),
+        ({"learning_starts": -1}, r"learning_starts: expected an int >= 0"),
+        ({"learning_rate": 0.0}, r"learning_rate: expected a finite number in \(0.0, inf\]"),
+        ({"epsilon_start": 1.5}, r"epsilon_start: expected a finite number in \[0.0, 1.0\]"),
+        ({"final_episodes": 0}, r"final_episodes: expected an int >= 1"),
+        ({"name": ""}, r"name: expected a non-empty name"),
+    ],
+)
+def test_bad_arguments_fail_before_any_work(
+    module: ModuleType, tabular_run: Path, tmp_path: Path, change: dict[str, object], message: str
+) -> None:
+    clock = time.perf_counter()
+    with pytest.raises(ValueError, match=message):
+        module.run(_tiny(module, tmp_path / "runs", tabular_run, **change))
+    assert time.perf_counter() - clock < 5.0
+    assert not (tmp_path / "runs").exists()  # no run folder
+
+
+def test_help_lists_the_arguments(module: ModuleType, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        module.main(["--help"])
+    text = capsys.readouterr().out
+    for flag in ("--tabular-run STR", "(required)", "--resume", "--no-train-table"):
+        assert flag in text
 
 
 def test_a_missing_tabular_run_is_named(module: ModuleType, tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"tabular_run .* run train/dyna_q_peg\.py first"):
-        module.run(_tiny(module, tmp_path, tmp_path / "nothing"))
+        module.run(_tiny(module, tmp_path / "runs", tmp_path / "nothing"))
+    assert not (tmp_path / "runs").exists()

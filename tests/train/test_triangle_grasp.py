@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import re
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
@@ -35,6 +37,7 @@ def result(module: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> Iter
 
 def test_outputs_exist(result: dict) -> None:
     run_dir = Path(result["run_dir"])
+    assert re.fullmatch(r"tiny__0__\d+", run_dir.name)
     for name in ("results.md", "metrics.json", "snapshots.png", "errors.png", "modes.png"):
         assert (run_dir / name).is_file(), name
     assert any(p.name.startswith("events.out.tfevents") for p in run_dir.iterdir())
@@ -146,3 +149,36 @@ def test_help_lists_the_arguments(module: ModuleType, capsys: pytest.CaptureFixt
     text = capsys.readouterr().out
     for flag in ("--rbpf-particles", "--pf-particles", "--trials", "--gap-sigma"):
         assert flag in text
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"trials": 0}, r"trials: expected an int >= 1, got 0"),
+        ({"steps": 4}, r"steps: expected an int >= 8 \(every phase of the grasp schedule\)"),
+        ({"pf_particles": -1}, r"pf_particles: expected an int >= 0"),
+        ({"vision_sigma": 0.0}, r"vision_sigma: expected a finite number in \(0.0, inf\]"),
+        ({"false_positive": 1.0}, r"false_positive: expected a finite number in \[0.0, 1.0\)"),
+        ({"friction_high": 0.3}, r"friction_high: expected a finite number in \[0.4, inf\]"),
+        ({"gap_sigma": -1.0}, r"gap_sigma: expected a finite number"),
+        ({"name": "a/b"}, r"name: expected a non-empty name"),
+    ],
+)
+def test_bad_arguments_fail_before_any_work(
+    module: ModuleType, tmp_path: Path, change: dict[str, object], message: str
+) -> None:
+    args = module.Args(out_dir=str(tmp_path / "runs"), fast=True, **change)
+    clock = time.perf_counter()
+    with pytest.raises(ValueError, match=message):
+        module.run(args)
+    assert time.perf_counter() - clock < 5.0
+    assert not (tmp_path / "runs").exists()  # no run folder
+
+
+def test_too_few_rbpf_particles_for_the_learned_modes_are_refused(
+    module: ModuleType, tmp_path: Path
+) -> None:
+    args = module.Args(out_dir=str(tmp_path / "runs"), fast=True, rbpf_particles=2)
+    with pytest.raises(ValueError, match=r"rbpf_particles: expected an int >= \d+ \(the number"):
+        module.run(args)
+    assert not (tmp_path / "runs").exists()  # refused before any filter ran

@@ -5,12 +5,22 @@ Peg-in-hole (:mod:`torchcontact.envs`): :func:`run_round` trains (or evaluates) 
 :class:`PotentialShaping` and records the steps (:class:`PegLearning` holds the settings
 that learn the task); :func:`evaluate` executes the learned policy under uncertainty (oracle,
 raw observation, QMDP over the RBPF belief, neural Q on :func:`belief_features`), with
-:class:`QLookup` mapping manipulation states to Q values. Scripts read their command line
-with :func:`parse_dataclass` and resume with :func:`load_checkpoint`.
+:class:`QLookup` mapping manipulation states to Q values. Scripts check their arguments with
+:func:`check_int`, :func:`check_float`, :func:`check_choice` and :func:`check_name` before any
+work, get a new run folder or the one to resume with :func:`open_run`, and write checkpoints
+atomically with :func:`save_checkpoint`.
 """
 
-from torchcontact.experiments._checkpoint import load_checkpoint
-from torchcontact.experiments._cli import parse_dataclass
+from torchcontact.experiments._args import check_choice, check_float, check_int, check_name
+from torchcontact.experiments._checkpoint import (
+    CHECKPOINT,
+    LOCATION,
+    load_checkpoint,
+    new_run_dir,
+    open_run,
+    read_checkpoint,
+    save_checkpoint,
+)
 from torchcontact.experiments._peg_execution import (
     NUM_BELIEF_FEATURES,
     SETTINGS,
@@ -31,6 +41,8 @@ from torchcontact.experiments._peg_learning import (
 from torchcontact.experiments._q_lookup import QLookup
 
 __all__ = [
+    "CHECKPOINT",
+    "LOCATION",
     "NUM_BELIEF_FEATURES",
     "SETTINGS",
     "Evaluation",
@@ -40,11 +52,18 @@ __all__ = [
     "RoundResult",
     "Setting",
     "belief_features",
+    "check_choice",
+    "check_float",
+    "check_int",
+    "check_name",
     "evaluate",
     "evaluate_settings",
     "load_checkpoint",
-    "parse_dataclass",
+    "new_run_dir",
+    "open_run",
+    "read_checkpoint",
     "results_table",
     "round_seed",
     "run_round",
+    "save_checkpoint",
 ]
