@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import torch
 from torch import Tensor
@@ -37,22 +37,29 @@ def all_finite(value: Tensor) -> bool:
     return bool(torch.isfinite(value).all())
 
 
-def check_int(name: str, value: object, *, low: int, high: int | None = None) -> int:
+def check_int(name: str, value: object, *, low: int, high: int | None = None, why: str = "") -> int:
     """Check that ``value`` is an integer (not a bool) in ``[low, high)`` and return it.
 
     ``numpy`` integers are accepted and converted to ``int``; ``high=None`` means no upper
     bound.
 
+    Args:
+        name: the argument's name, used in the error message.
+        value: the object to check.
+        low: the least allowed value.
+        high: one past the largest allowed value (``None``: no upper bound).
+        why: where the bounds come from, shown in parentheses (empty: nothing).
+
     Raises:
         ValueError: ``value`` is not an integer or lies outside the range.
     """
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
-        raise ValueError(f"{name} must be an int, got {value!r}")
-    result = int(value)
-    if result < low or (high is not None and result >= high):
-        bounds = f"[{low}, {high})" if high is not None else f">= {low}"
-        raise ValueError(f"{name} must lie in {bounds}, got {result}")
-    return result
+    if not isinstance(value, bool) and isinstance(value, numbers.Integral):
+        result = int(value)
+        if result >= low and (high is None or result < high):
+            return result
+    bounds = f"in [{low}, {high})" if high is not None else f">= {low}"
+    reason = f" ({why})" if why else ""
+    raise ValueError(f"{name}: expected an int {bounds}{reason}, got {value!r}")
 
 
 def check_real(
@@ -77,17 +84,16 @@ def check_real(
     Raises:
         ValueError: ``value`` is not a finite real number in the interval.
     """
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise ValueError(f"{name} must be a real number, got {value!r}")
-    result = float(value)
-    too_low = result <= low if low_open else result < low
-    too_high = result >= high if high_open else result > high
-    if not math.isfinite(result) or too_low or too_high:
-        if low == 0.0 and low_open and high == math.inf:
-            raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-        interval = f"{'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
-        raise ValueError(f"{name} must be a finite number in {interval}, got {value!r}")
-    return result
+    if not isinstance(value, bool) and isinstance(value, numbers.Real):
+        result = float(value)
+        above = result > low if low_open else result >= low
+        below = result < high if high_open else result <= high
+        if math.isfinite(result) and above and below:
+            return result
+    if low == 0.0 and low_open and high == math.inf:
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    interval = f"{'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
+    raise ValueError(f"{name}: expected a finite number in {interval}, got {value!r}")
 
 
 def check_positive(name: str, value: object) -> float:
@@ -282,3 +288,26 @@ def broadcast_batch(shapes: Sequence[tuple[str, Sequence[int]]]) -> torch.Size:
                 )
             batch[offset + i] = current if size == 1 else size
     return torch.Size(batch)
+
+
+def check_choice(name: str, value: object, choices: Iterable[str]) -> str:
+    """Check that ``value`` is one of ``choices`` and return it.
+
+    Raises:
+        ValueError: ``value`` is not one of ``choices``.
+    """
+    allowed = tuple(choices)
+    if value not in allowed:
+        raise ValueError(f"{name}: expected one of {allowed}, got {value!r}")
+    return str(value)
+
+
+def check_name(name: str, value: object) -> str:
+    """Check that ``value`` is a non-empty folder name (no path separator) and return it.
+
+    Raises:
+        ValueError: ``value`` is empty or holds ``/`` or ``\\``.
+    """
+    if not isinstance(value, str) or not value or "/" in value or "\\" in value:
+        raise ValueError(f"{name}: expected a non-empty name without '/' or '\\', got {value!r}")
+    return value

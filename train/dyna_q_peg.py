@@ -48,9 +48,9 @@ from torchcontact.experiments import (
     PegLearning,
     QLookup,
     check_choice,
-    check_float,
     check_int,
     check_name,
+    check_real,
     evaluate_settings,
     open_run,
     results_table,
@@ -154,12 +154,12 @@ def check_args(args: Args) -> PegLearning:
     check_int("particles", args.particles, low=NUM_CONTACT_CLASSES, why=_MODES)
     check_choice("step_size", args.step_size, get_args(StepSize))
     check_choice("exploration", args.exploration, get_args(Exploration))
-    check_float("alpha", args.alpha, low=0.0, high=1.0, low_open=True)
-    check_float("gamma", args.gamma, low=0.0, high=1.0)
-    check_float("epsilon", args.epsilon, low=0.0, high=1.0)
-    check_float("planning_penalty", args.planning_penalty, low=0.0)
-    check_float("shaping", args.shaping, low=0.0)
-    check_float("vision_sigma", args.vision_sigma, low=0.0, low_open=True)
+    check_real("alpha", args.alpha, low=0.0, high=1.0, low_open=True)
+    check_real("gamma", args.gamma, low=0.0, high=1.0)
+    check_real("epsilon", args.epsilon, low=0.0, high=1.0)
+    check_real("planning_penalty", args.planning_penalty, low=0.0)
+    check_real("shaping", args.shaping, low=0.0)
+    check_real("vision_sigma", args.vision_sigma, low=0.0, low_open=True)
     _config(args, noisy=True)  # the grid edges, checked by PegInHoleConfig
     learning = PegLearning(
         alpha=args.alpha,

@@ -40,9 +40,9 @@ from torchcontact.experiments import (
     PotentialShaping,
     QLookup,
     belief_features,
-    check_float,
     check_int,
     check_name,
+    check_real,
     evaluate,
     evaluate_settings,
     open_run,
@@ -155,9 +155,9 @@ def check_args(args: Args) -> _Tabular:
         check_int(name, getattr(args, name), low=1)
     for name in ("seed", "learning_starts", "updates_per_step", "epsilon_steps"):
         check_int(name, getattr(args, name), low=0)
-    check_float("learning_rate", args.learning_rate, low=0.0, low_open=True)
-    check_float("epsilon_start", args.epsilon_start, low=0.0, high=1.0)
-    check_float("epsilon_end", args.epsilon_end, low=0.0, high=1.0)
+    check_real("learning_rate", args.learning_rate, low=0.0, low_open=True)
+    check_real("epsilon_start", args.epsilon_start, low=0.0, high=1.0)
+    check_real("epsilon_end", args.epsilon_end, low=0.0, high=1.0)
     tabular = _load_tabular(Path(args.tabular_run))
     K = tabular.model.num_modes
     check_int("particles", args.particles, low=K, why="the belief model's number of modes K")

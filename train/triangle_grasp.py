@@ -51,7 +51,7 @@ from torch import Tensor
 from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
-from torchcontact.experiments import check_float, check_int, check_name, new_run_dir
+from torchcontact.experiments import check_int, check_name, check_real, new_run_dir
 from torchcontact.filters import (
     RBPF,
     Gaussian,
@@ -742,13 +742,13 @@ def check_args(args: Args) -> None:
     check_int("steps", args.steps, low=MIN_STEPS, why="every phase of the grasp schedule")
     check_int("pf_particles", args.pf_particles, low=0)
     for name in ("rbpf_pose_noise", "rbpf_twist_noise", "vision_sigma", "vision_sigma_theta"):
-        check_float(name, getattr(args, name), low=0.0, low_open=True)
+        check_real(name, getattr(args, name), low=0.0, low_open=True)
     for name in ("gap_sigma", "friction_model", "x_offset", "tilt"):
-        check_float(name, getattr(args, name), low=0.0)
+        check_real(name, getattr(args, name), low=0.0)
     for name in ("false_positive", "false_negative"):
-        check_float(name, getattr(args, name), low=0.0, high=1.0, high_open=True)
-    check_float("friction_low", args.friction_low, low=0.0)
-    check_float("friction_high", args.friction_high, low=args.friction_low)
+        check_real(name, getattr(args, name), low=0.0, high=1.0, high_open=True)
+    check_real("friction_low", args.friction_low, low=0.0)
+    check_real("friction_high", args.friction_high, low=args.friction_low)
 
 
 def run(args: Args) -> dict[str, Any]:

@@ -95,6 +95,7 @@ def test_filter_tracks_the_peg_better_than_the_camera(
     assert rmse_filter < 0.6 * rmse_camera
 
 
+@pytest.mark.bitwise("the entries that are not restarted are passed through untouched")
 def test_restart_replaces_exactly_the_entries_of_new_episodes(
     fitted: tuple[PegInHoleBeliefModel, DynaQ, PegTransitions],
 ) -> None:
@@ -120,7 +121,8 @@ def test_restart_replaces_exactly_the_entries_of_new_episodes(
                 tuple(getattr(getattr(b.rbpf, name), part) for b in (restarted, fresh, belief))
             )
     for got, new, old in pairs:
-        assert torch.equal(got[1], new[1])
+        # The restarted entry is a fresh start computed in a batch of another size.
+        torch.testing.assert_close(got[1], new[1], rtol=1e-12, atol=1e-15)
         assert torch.equal(got[0], old[0])
         assert torch.equal(got[2], old[2])
     assert not torch.equal(fresh.gripper[0], belief.gripper[0])  # the restart changed something
@@ -151,6 +153,7 @@ def test_qmdp_over_particles_equals_a_loop_over_the_known_ones(
     torch.testing.assert_close(lookup.qmdp(ids, weights), expected, rtol=1e-12, atol=1e-15)
 
 
+@pytest.mark.bitwise("a row of Q values is looked up and copied, not computed")
 def test_unknown_states_borrow_the_nearest_known_row(
     fitted: tuple[PegInHoleBeliefModel, DynaQ, PegTransitions],
 ) -> None:

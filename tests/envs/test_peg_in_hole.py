@@ -71,6 +71,7 @@ def test_registered_with_gymnasium() -> None:
     assert isinstance(vector.unwrapped, PegInHole2DVector)
 
 
+@pytest.mark.bitwise("the same code on the same inputs in the same process")
 def test_same_seed_same_trajectory_different_seed_different() -> None:
     actions = np.random.default_rng(0).integers(0, 7, size=15)
 
@@ -137,6 +138,7 @@ def test_a_policy_on_manipulation_states_alone_inserts_the_peg() -> None:
         assert info["success"], seed
 
 
+@pytest.mark.bitwise("the noiseless channels copy the true values; tactile cells are 0 or 1")
 def test_noisy_observations_follow_the_noise_model() -> None:
     """Pose noise is the generator's normals times the std; tactile flips at the given rates."""
     std = (0.003, 0.001, 0.05)

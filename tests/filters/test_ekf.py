@@ -227,6 +227,7 @@ def test_se3_ekf_pose_measurement_pulls_to_the_measurement() -> None:
     assert torch.isfinite(ll).all()
 
 
+@pytest.mark.bitwise("an entry without a measurement is passed through untouched")
 def test_ekf_missing_measurement_leaves_pose_unchanged() -> None:
     gen = torch.Generator().manual_seed(7)
     x = _random_pose(gen, 2)

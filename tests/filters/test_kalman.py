@@ -141,6 +141,7 @@ def test_batched_equals_looped_and_permutation_equivariant() -> None:
         torch.testing.assert_close(ll[perm], ll_p, rtol=0, atol=1e-12)
 
 
+@pytest.mark.bitwise("an entry without a measurement is passed through untouched")
 def test_nan_measurement_leaves_entry_unchanged() -> None:
     B, n, m = 5, 3, 2
     s = _system(B, n, m, seed=3)
@@ -160,6 +161,7 @@ def test_nan_measurement_leaves_entry_unchanged() -> None:
     torch.testing.assert_close(ll[keep], ref_ll, rtol=0, atol=1e-14)
 
 
+@pytest.mark.bitwise("an entry without a measurement is passed through untouched")
 def test_mask_equals_row_deletion() -> None:
     B, n, m = 16, 4, 3
     s = _system(B, n, m, seed=4)
@@ -191,6 +193,7 @@ def test_mask_equals_row_deletion() -> None:
         assert abs(ll[b].item() - ll_ref) < 1e-12
 
 
+@pytest.mark.bitwise("both functions run the same operations on the same tensors in one process")
 def test_update_log_likelihood_is_update_cores_to_the_bit() -> None:
     """The likelihood alone equals update_core's: from the full covariance (any H, with and
     without a mask that leaves an entry unobserved) and, for an H that reads the leading
@@ -222,6 +225,9 @@ def test_update_log_likelihood_is_update_cores_to_the_bit() -> None:
             assert torch.equal(got, expected)
 
 
+@pytest.mark.bitwise(
+    "a factor's upper triangle is exact zeros; a refactored batch runs the same function"
+)
 def test_psd_cholesky_per_batch_and_entrywise() -> None:
     """Both modes factor PD and singular PSD matrices exactly (L Lᵀ = A, lower triangular,
     finite); on a batch of PD matrices the entrywise factor is the plain one to rounding, and
@@ -310,6 +316,7 @@ def test_log_likelihood_gradient_matches_numpy_finite_differences() -> None:
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.bitwise("(P + Pᵀ) / 2 is symmetric bit for bit: IEEE addition commutes")
 def test_stability_tiny_R_huge_P0(dtype: torch.dtype) -> None:
     """1,000 steps of a constant-acceleration model observed in position only, for three
     (R, P0, Q) regimes side by side; R/P0 spans up to 20 orders of magnitude, far beyond
@@ -349,6 +356,7 @@ def test_stability_tiny_R_huge_P0(dtype: torch.dtype) -> None:
     assert (error < 100 * r_var.sqrt() + 1e-3 * x[0].abs() * torch.finfo(dtype).eps ** 0.5).all()
 
 
+@pytest.mark.bitwise("indexing copies the entries")
 def test_gaussian_indexing_and_to() -> None:
     s = _system(6, 3, 2)
     g = Gaussian(s["mean"].reshape(2, 3, 3), s["cov"].reshape(2, 3, 3, 3))

@@ -389,12 +389,14 @@ def test_noise_and_measurement_shared_by_every_mode_give_the_same_step(proposal:
     views = RBPF(problem.model(**shared), 32, proposal=proposal)
     copies = RBPF(problem.model(**{k: v.clone() for k, v in shared.items()}), 32, proposal=proposal)
     a, b = _run(views, problem, seed=3), _run(copies, problem, seed=3)
+    assert torch.equal(a.modes, b.modes)
+    # The same numbers up to the rounding of kernels that may differ with the memory layout.
     for x, y in zip(
-        (a.modes, a.log_weights, a.log_evidence, a.gaussians.mean, a.gaussians.cov),
-        (b.modes, b.log_weights, b.log_evidence, b.gaussians.mean, b.gaussians.cov),
+        (a.log_weights, a.log_evidence, a.gaussians.mean, a.gaussians.cov),
+        (b.log_weights, b.log_evidence, b.gaussians.mean, b.gaussians.cov),
         strict=True,
     ):
-        assert torch.equal(x, y)
+        torch.testing.assert_close(x, y, rtol=1e-12, atol=1e-12)
 
 
 def test_steps_without_gradients_return_ordinary_tensors() -> None:
@@ -413,6 +415,7 @@ def test_steps_without_gradients_return_ordinary_tensors() -> None:
     assert scale.grad is not None
 
 
+@pytest.mark.bitwise("the same code on the same inputs in the same process")
 def test_generator_makes_runs_reproducible() -> None:
     problem = _problem(seed=8)
     rbpf = RBPF(problem.model(), 20)

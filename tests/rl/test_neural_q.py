@@ -45,6 +45,7 @@ def test_from_table_starts_at_the_qmdp_values() -> None:
     assert not torch.allclose(network(torch.cat([p, other], -1)), qmdp_values(network.table, p))
 
 
+@pytest.mark.bitwise("a zero-initialized output layer gives exact zeros")
 def test_linear_network_without_other_features() -> None:
     network = QNetwork(3, 0, 2, hidden=())
     assert network.input_size == 3
@@ -159,6 +160,7 @@ def test_dqn_loss_by_hand(double: bool, delta: float, expected: float) -> None:
         torch.testing.assert_close(online.weight.grad, expected_grad, rtol=0, atol=1e-15)
 
 
+@pytest.mark.bitwise("a hard update copies the parameters")
 def test_update_target_hard_and_soft() -> None:
     online = QNetwork(3, 2, 2, hidden=(4,), dtype=torch.float64)
     target = QNetwork(3, 2, 2, hidden=(4,), dtype=torch.float64)
@@ -190,6 +192,7 @@ def _add(buffer: ReplayBuffer, steps: range) -> None:
     )
 
 
+@pytest.mark.bitwise("the buffer stores and returns copies of small integers")
 def test_ring_buffer_keeps_the_last_capacity_transitions() -> None:
     buffer = ReplayBuffer(4, 2, dtype=torch.float64)
     for t in range(7):  # one at a time
@@ -220,6 +223,7 @@ def test_ring_buffer_keeps_the_last_capacity_transitions() -> None:
     assert torch.equal(batch.terminals, t.long() % 2 == 0)
 
 
+@pytest.mark.bitwise("sampling returns copies of stored entries")
 def test_sampling_is_uniform_and_seeded() -> None:
     buffers = [ReplayBuffer(8, 2, dtype=torch.float64, seed=seed) for seed in (1, 1, 2)]
     for buffer in buffers:
@@ -236,6 +240,7 @@ def test_sampling_is_uniform_and_seeded() -> None:
         assert torch.equal(buffer.sample(32).rewards, after) is same
 
 
+@pytest.mark.bitwise("sampling returns copies of stored entries")
 def test_buffer_state_dict_resumes_sampling() -> None:
     buffer = ReplayBuffer(16, (1, 2), seed=3)
     t = torch.arange(10.0)

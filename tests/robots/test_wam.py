@@ -57,6 +57,7 @@ def test_zero_configuration_puts_tool_at_091() -> None:
     torch.testing.assert_close(tool[:3, :3], torch.eye(3, dtype=torch.float64))
 
 
+@pytest.mark.bitwise("limits are parsed from decimal strings, correctly rounded")
 def test_joint_metadata_and_limits() -> None:
     robot = load("wam7")
     assert robot.dof == 7

@@ -1,4 +1,4 @@
-"""penetration(): the penetrating slots of contact_problem, to the bit, for less work."""
+"""penetration(): the penetrating slots of contact_problem, to rounding, for less work."""
 
 from __future__ import annotations
 
@@ -57,8 +57,8 @@ def test_a_grasped_triangle_equals_contact_problem_where_fingers_are_culled() ->
     assert bool(penetrating[:, table].any())
     assert bool(penetrating[:, ~table].any())
     assert not bool(penetrating[:, ~table].any(-1).all())  # some states cull the fingers
-    assert torch.equal(phi[penetrating], phi_ref[penetrating])
-    assert torch.equal(Jn[penetrating], Jn_ref[penetrating])
+    torch.testing.assert_close(phi[penetrating], phi_ref[penetrating], rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(Jn[penetrating], Jn_ref[penetrating], rtol=1e-12, atol=1e-15)
     assert not bool(phi[~penetrating].any())
     assert not bool(Jn[~penetrating].any())
 
@@ -91,8 +91,8 @@ def test_two_dynamic_bodies_get_both_blocks_of_their_rows() -> None:
     rows = Jn[:, columns][penetrating[:, columns]]  # (R, 6): both bodies' blocks filled
     assert bool((rows[:, :3] != 0).any(-1).all())
     assert bool((rows[:, 3:] != 0).any(-1).all())
-    assert torch.equal(phi[penetrating], phi_ref[penetrating])
-    assert torch.equal(Jn[penetrating], Jn_ref[penetrating])
+    torch.testing.assert_close(phi[penetrating], phi_ref[penetrating], rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(Jn[penetrating], Jn_ref[penetrating], rtol=1e-12, atol=1e-15)
 
 
 def test_bad_shapes_name_the_argument() -> None:

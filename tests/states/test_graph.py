@@ -44,6 +44,9 @@ def _graph(smoothing: float = 0.0) -> ManipulationGraph:
     return graph
 
 
+@pytest.mark.bitwise(
+    "probabilities are ratios of small integer counts, correctly rounded by IEEE division"
+)
 def test_counts_and_probabilities_without_smoothing() -> None:
     graph = _graph()
     assert graph.states == (M0, M1, M2)  # first-seen order
@@ -116,6 +119,9 @@ def test_merging_states_adds_their_counts_and_rewards() -> None:
         graph.merged(lambda m: m.pose)  # type: ignore[arg-type,return-value]
 
 
+@pytest.mark.bitwise(
+    "probabilities are ratios of small integer counts, correctly rounded by IEEE division; a one-hot policy row adds exact zeros"
+)
 def test_transition_exports() -> None:
     graph = _graph(smoothing=0.25)
     T = graph.transition_tensor()
@@ -140,6 +146,7 @@ def test_transition_exports() -> None:
         graph.transition_matrix(torch.ones(2, 2) / 2)
 
 
+@pytest.mark.bitwise("mean rewards are sums of a few decimals divided by counts, in one order")
 def test_sampling_frequencies_match_probabilities() -> None:
     graph = _graph(smoothing=0.5)
     n = 30_000
@@ -165,6 +172,7 @@ def test_sampling_frequencies_match_probabilities() -> None:
     assert sharp.sample(M2, 0, generator=gen) == (M2, -5.0)  # unvisited: self-loop
 
 
+@pytest.mark.bitwise("the same code on the same inputs in the same process")
 def test_sampling_is_reproducible_with_a_generator() -> None:
     graph = _graph(smoothing=1.0)
     ids, actions = torch.randint(0, 3, (50,)), torch.randint(0, 2, (50,))
@@ -174,6 +182,7 @@ def test_sampling_is_reproducible_with_a_generator() -> None:
     assert torch.equal(a[1], b[1])
 
 
+@pytest.mark.bitwise("an unvisited pair's self-loop has probability 1 exactly")
 def test_unknown_states_and_bad_actions() -> None:
     graph = _graph()
     with pytest.raises(KeyError, match="unknown state"):
@@ -197,12 +206,13 @@ def test_unknown_states_and_bad_actions() -> None:
     assert _state(9) not in graph  # nothing was recorded
     with pytest.raises(ValueError, match=r"state_ids must lie in \[0, 4\)"):
         graph.sample_ids(torch.tensor([4]), torch.tensor([0]))
-    with pytest.raises(ValueError, match="num_actions must be an int >= 1"):
+    with pytest.raises(ValueError, match="num_actions: expected an int >= 1"):
         ManipulationGraph(0)
     with pytest.raises(ValueError, match="smoothing must be a finite number >= 0"):
         ManipulationGraph(2, smoothing=-1.0)
 
 
+@pytest.mark.bitwise("Python's float repr round-trips every float exactly")
 def test_json_round_trip_is_exact(tmp_path) -> None:
     graph = _graph(smoothing=0.3)
     feature = ContactFeature(PartnerKind.ROBOT, (-7, 1), (0, 2), True)
@@ -253,6 +263,7 @@ def test_draw_writes_a_png(tmp_path) -> None:
     assert path.stat().st_size > 1000
 
 
+@pytest.mark.bitwise("deterministic rows hold probability 1 exactly")
 def test_box_resting_sliding_and_tipping() -> None:
     """Synthetic contact tensors of a pushed box give three states and the expected edges.
 

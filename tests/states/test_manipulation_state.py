@@ -213,6 +213,7 @@ def test_planar_box_contacts_geometry() -> None:
     assert tipped.mode.tolist() == [0, 1, 0, 0, 0]
 
 
+@pytest.mark.bitwise("indexing and stacking copy the entries")
 def test_contact_set_indexing_picks_batch_elements() -> None:
     steps = [box_step(x=0.0)[0], box_step(x=0.3, finger=(-0.5, 0.0))[0]]
     batch = stack(steps)

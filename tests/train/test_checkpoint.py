@@ -14,9 +14,9 @@ import torch
 from torchcontact.experiments import (
     CHECKPOINT,
     check_choice,
-    check_float,
     check_int,
     check_name,
+    check_real,
     load_checkpoint,
     new_run_dir,
     open_run,
@@ -154,11 +154,11 @@ def test_argument_checks_name_the_argument_and_the_range() -> None:
         check_int("particles", 16, low=24, why="K")
     with pytest.raises(ValueError, match="expected an int"):
         check_int("rounds", True, low=0)
-    assert check_float("alpha", 1, low=0.0, high=1.0, low_open=True) == 1.0
+    assert check_real("alpha", 1, low=0.0, high=1.0, low_open=True) == 1.0
     with pytest.raises(ValueError, match=r"alpha: expected a finite number in \(0.0, 1.0\]"):
-        check_float("alpha", 0.0, low=0.0, high=1.0, low_open=True)
+        check_real("alpha", 0.0, low=0.0, high=1.0, low_open=True)
     with pytest.raises(ValueError, match="sigma: expected a finite number"):
-        check_float("sigma", float("nan"))
+        check_real("sigma", float("nan"))
     with pytest.raises(ValueError, match=r"mode: expected one of \('a', 'b'\), got 'c'"):
         check_choice("mode", "c", ("a", "b"))
     assert check_name("name", "run") == "run"

@@ -262,6 +262,7 @@ def test_grid_edges_from_the_command_line(module: ModuleType) -> None:
         module._config(module.Args(x_edges="0.02,0.01"), noisy=False)
 
 
+@pytest.mark.bitwise("the same seed draws the same start by the same code")
 def test_rounds_play_distinct_episodes() -> None:
     """Sub-environment i of a reset with seed s plays seed s + i: rounds seeded base + r would
     share all but one episode with the previous round; round_seed keeps every round's

@@ -6,12 +6,12 @@ Peg-in-hole (:mod:`torchcontact.envs`): :func:`run_round` trains (or evaluates) 
 that learn the task); :func:`evaluate` executes the learned policy under uncertainty (oracle,
 raw observation, QMDP over the RBPF belief, neural Q on :func:`belief_features`), with
 :class:`QLookup` mapping manipulation states to Q values. Scripts check their arguments with
-:func:`check_int`, :func:`check_float`, :func:`check_choice` and :func:`check_name` before any
+:func:`check_int`, :func:`check_real`, :func:`check_choice` and :func:`check_name` before any
 work, get a new run folder or the one to resume with :func:`open_run`, and write checkpoints
 atomically with :func:`save_checkpoint`.
 """
 
-from torchcontact.experiments._args import check_choice, check_float, check_int, check_name
+from torchcontact._checks import check_choice, check_int, check_name, check_real
 from torchcontact.experiments._checkpoint import (
     CHECKPOINT,
     LOCATION,
@@ -53,9 +53,9 @@ __all__ = [
     "Setting",
     "belief_features",
     "check_choice",
-    "check_float",
     "check_int",
     "check_name",
+    "check_real",
     "evaluate",
     "evaluate_settings",
     "load_checkpoint",
