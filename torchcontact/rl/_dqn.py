@@ -40,7 +40,8 @@ def dqn_loss(
         huber_delta: ``δ > 0``, where the loss turns from quadratic to linear.
 
     Returns:
-        ``()`` loss, differentiable with respect to ``online``'s parameters.
+        ``()`` loss, differentiable with respect to ``online``'s parameters (0 for an empty
+        batch).
 
     Raises:
         ValueError: a setting is out of range or of the wrong type, a network is not an
@@ -102,6 +103,9 @@ def dqn_loss(
             next_value = next_q.max(dim=-1).values
         next_value = torch.where(terminals, torch.zeros_like(next_value), next_value)
         targets = rewards.to(q.dtype) + gamma * next_value
+    if N == 0:  # the mean over no transitions: 0, still differentiable in online's parameters
+        zero: Tensor = taken.sum()
+        return zero
     return functional.huber_loss(taken, targets, delta=delta)
 
 

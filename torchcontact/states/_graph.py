@@ -84,8 +84,12 @@ class ManipulationGraph:
     def __init__(
         self, num_actions: int, *, smoothing: float = 0.0, default_reward: float = 0.0
     ) -> None:
-        if isinstance(num_actions, bool) or not isinstance(num_actions, int) or num_actions < 1:
-            raise ValueError(f"num_actions must be an int >= 1, got {num_actions!r}")
+        if (
+            isinstance(num_actions, bool)
+            or not isinstance(num_actions, int)
+            or not 1 <= num_actions < 2**31
+        ):
+            raise ValueError(f"num_actions must be an int >= 1 and < 2**31, got {num_actions!r}")
         if not _is_real(smoothing) or not math.isfinite(smoothing) or smoothing < 0:
             raise ValueError(f"smoothing must be a finite number >= 0, got {smoothing!r}")
         if not _is_real(default_reward) or not math.isfinite(default_reward):
@@ -452,7 +456,7 @@ class ManipulationGraph:
             check_int(f"{where} m", i, low=0, high=K)
             check_int(f"{where} a", a, low=0, high=A)
             check_int(f"{where} m'", j, low=0, high=K)
-            check_int(f"{where} count", n, low=1)
+            check_int(f"{where} count", n, low=1, high=2**53)
             total = check_real(f"{where} reward_sum", total)
             entry = graph._edges.setdefault((i, a), {})
             if j in entry:

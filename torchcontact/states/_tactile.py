@@ -89,7 +89,8 @@ class TactileArray:
         for name, (low, high, closed) in bounds.items():
             value = getattr(self, name)
             if not isinstance(value, Tensor):
-                value = torch.full((S,), float(value), dtype=positions.dtype)
+                number = check_real(name, value)
+                value = torch.full((S,), number, dtype=positions.dtype)
             value = check_float(name, value, trailing=(S,), what=f"({S},) or a float")
             if value.shape != (S,) or value.dtype != positions.dtype:
                 raise ValueError(
@@ -101,7 +102,7 @@ class TactileArray:
                 interval = f"{'[' if closed else '('}{low}, {high}]"
                 raise ValueError(f"{name} must lie in {interval}, got {value.tolist()}")
             object.__setattr__(self, name, value.to(positions.device))
-        impulse = self.min_impulse
+        impulse: object = self.min_impulse
         if (
             isinstance(impulse, bool)
             or not isinstance(impulse, numbers.Real)
