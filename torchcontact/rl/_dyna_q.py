@@ -289,7 +289,11 @@ class DynaQ:
         return state in self._table
 
     def index(self, state: Hashable) -> int:
-        """The id of a known state (``KeyError`` if unknown)."""
+        """The id of a known state.
+
+        Raises:
+            UnknownStateError: ``state`` is unknown (a ``ValueError`` and a ``KeyError``).
+        """
         return self._table.index(state)
 
     def q_values(self, state: Hashable, *, dtype: torch.dtype = torch.float64) -> Tensor:
@@ -629,7 +633,10 @@ class DynaQ:
 
         Raises:
             ValueError: ``state_dict`` is not a DynaQ state, was saved with another number of
-                actions, or its parts disagree with each other (the agent is then unchanged).
+                actions, misses an entry, has an entry of the wrong type, shape or range (a
+                count below 1, an id or action out of range, NaN or inf, an RNG state that
+                does not load), or its parts disagree with each other; the message names the
+                entry and the agent is unchanged.
         """
         restored = DynaQ(self._num_actions)
         restored._restore(state_dict)

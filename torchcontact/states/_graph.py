@@ -61,8 +61,8 @@ class ManipulationGraph:
       known to happen, so the state persists); adding states changes ``K`` and so the
       smoothed probabilities of every pair;
     * a transition never observed has mean reward ``default_reward``;
-    * a state that is not in the graph raises ``KeyError`` (register it with :meth:`add_state`
-      to get the prior above).
+    * a state that is not in the graph raises :class:`UnknownStateError`, a ``ValueError``
+      and a ``KeyError`` (register it with :meth:`add_state` to get the prior above).
 
     The graph exports the filter's mode-transition model (:meth:`transition_tensor`,
     :meth:`transition_matrix`, with :attr:`states` as the id ↔ state table), the sampling model
@@ -131,7 +131,7 @@ class ManipulationGraph:
         return state in self._table
 
     def index(self, state: ManipulationState) -> int:
-        """The id of a known state (``KeyError`` if unknown)."""
+        """The id of a known state (:class:`UnknownStateError` if unknown)."""
         return self._table.index(state)
 
     def add_state(self, state: ManipulationState) -> int:
@@ -324,7 +324,8 @@ class ManipulationGraph:
         ``(A, K, K)`` model.
 
         Raises:
-            KeyError: ``state`` is unknown.
+            UnknownStateError: ``state`` is unknown (a ``ValueError`` and a ``KeyError``).
+            ValueError: ``action`` is not in ``[0, A)``.
         """
         self._check_action(action)
         source = self.index(state)
