@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Iterable, Sequence
+import os
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -311,3 +313,57 @@ def check_name(name: str, value: object) -> str:
     if not isinstance(value, str) or not value or "/" in value or "\\" in value:
         raise ValueError(f"{name}: expected a non-empty name without '/' or '\\', got {value!r}")
     return value
+
+
+def check_field(name: str, data: object, key: str) -> object:
+    """The entry ``key`` of the mapping ``data`` (a loaded file or state dict) named ``name``.
+
+    Raises:
+        ValueError: ``data`` is not a mapping or has no entry ``key``.
+    """
+    if not isinstance(data, Mapping):
+        raise ValueError(f"{name} must be a mapping, got {type(data).__name__}")
+    if key not in data:
+        raise ValueError(f"{name} is missing the entry {key!r}")
+    return data[key]
+
+
+def check_generator_state(name: str, value: object) -> Tensor:
+    """Check that ``value`` is a state that a CPU ``torch.Generator`` can load.
+
+    Raises:
+        ValueError: ``value`` is not a ``torch.uint8`` tensor of a CPU generator's state size.
+    """
+    value = check_dtype(name, value, torch.uint8, "(a CPU torch.Generator state)")
+    try:
+        torch.Generator().set_state(value)
+    except RuntimeError as error:
+        raise ValueError(f"{name} is not a CPU torch.Generator state ({error})") from None
+    return value
+
+
+def read_text_file(name: str, path: object) -> str:
+    """The UTF-8 text of the file at ``path``.
+
+    Raises:
+        ValueError: ``path`` is not a str or ``os.PathLike``, or names no readable UTF-8 text
+            file (missing, a directory, unreadable or not UTF-8).
+    """
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"{name} must be a str or os.PathLike path, got {type(path).__name__}")
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise ValueError(
+            f"{name} {str(path)!r} cannot be read as a UTF-8 text file ({error})"
+        ) from None
+
+
+def check_instance(name: str, value: object, kind: type) -> None:
+    """Check that ``value`` is an instance of ``kind``.
+
+    Raises:
+        ValueError: it is not (the message names ``kind`` and the type found).
+    """
+    if not isinstance(value, kind):
+        raise ValueError(f"{name} must be a {kind.__name__}, got {type(value).__name__}")

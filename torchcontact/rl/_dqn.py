@@ -6,7 +6,7 @@ import torch
 from torch import Tensor, nn
 from torch.nn import functional
 
-from torchcontact._checks import all_finite, check_real
+from torchcontact._checks import FLOAT_DTYPES, all_finite, check_instance, check_real
 from torchcontact.rl._replay import Transitions
 
 
@@ -40,10 +40,12 @@ def dqn_loss(
         huber_delta: ``δ > 0``, where the loss turns from quadratic to linear.
 
     Returns:
-        ``()`` loss, differentiable with respect to ``online``'s parameters.
+        ``()`` loss, differentiable with respect to ``online``'s parameters (0 for an empty
+        batch).
 
     Raises:
-        ValueError: a setting is out of range, or the batch's fields or the networks' outputs
+        ValueError: a setting is out of range or of the wrong type, a network is not an
+            ``nn.Module``, or the batch's fields or the networks' outputs
             have inconsistent shapes or dtypes, or an action is out of range.
 
     References:
@@ -55,6 +57,13 @@ def dqn_loss(
     delta = check_real("huber_delta", huber_delta, low=0.0, low_open=True)
     if not isinstance(batch, Transitions):
         raise ValueError(f"batch must be a Transitions, got {type(batch).__name__}")
+    if not isinstance(double, bool):
+        raise ValueError(f"double must be a bool, got {double!r}")
+    for name, module in (("online", online), ("target", target)):
+        check_instance(name, module, nn.Module)
+    for name, value in zip(Transitions._fields, batch, strict=True):
+        if not isinstance(value, Tensor):
+            raise ValueError(f"batch.{name} must be a tensor, got {type(value).__name__}")
     observations, actions, rewards, next_observations, terminals = batch
     N = observations.shape[0] if observations.ndim else -1
     if next_observations.shape != observations.shape:
@@ -64,13 +73,13 @@ def dqn_loss(
         )
     for name, value, dtype_ok in (
         ("actions", actions, actions.dtype == torch.long),
-        ("rewards", rewards, rewards.dtype.is_floating_point),
+        ("rewards", rewards, rewards.dtype in FLOAT_DTYPES),
         ("terminals", terminals, terminals.dtype == torch.bool),
     ):
         if value.shape != (N,) or not dtype_ok:
             raise ValueError(
                 f"batch.{name} must be a ({N},) tensor of the right dtype (long actions, "
-                f"floating rewards, bool terminals), got {tuple(value.shape)} {value.dtype}"
+                f"float32/float64 rewards, bool terminals), got {tuple(value.shape)} {value.dtype}"
             )
     if not all_finite(rewards):
         raise ValueError("batch.rewards contains NaN or inf")
@@ -94,6 +103,9 @@ def dqn_loss(
             next_value = next_q.max(dim=-1).values
         next_value = torch.where(terminals, torch.zeros_like(next_value), next_value)
         targets = rewards.to(q.dtype) + gamma * next_value
+    if N == 0:  # the mean over no transitions: 0, still differentiable in online's parameters
+        zero: Tensor = taken.sum()
+        return zero
     return functional.huber_loss(taken, targets, delta=delta)
 
 
@@ -109,10 +121,12 @@ def update_target(*, target: nn.Module, online: nn.Module, tau: float = 1.0) -> 
         tau: step in ``(0, 1]``.
 
     Raises:
-        ValueError: ``tau`` is out of range, ``target`` is ``online``, or their parameters
-            or buffers differ in number or shape.
+        ValueError: ``tau`` is out of range, a network is not an ``nn.Module``, ``target`` is
+            ``online``, or their parameters or buffers differ in number or shape.
     """
     tau = check_real("tau", tau, low=0.0, high=1.0, low_open=True)
+    check_instance("target", target, nn.Module)
+    check_instance("online", online, nn.Module)
     if target is online:
         raise ValueError("target must be a different module from online")
     pairs = []

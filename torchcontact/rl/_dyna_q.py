@@ -12,7 +12,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchcontact._checks import check_int, check_real
+from torchcontact._checks import (
+    FLOAT_DTYPES,
+    all_finite,
+    check_dtype,
+    check_field,
+    check_float,
+    check_generator_state,
+    check_int,
+    check_real,
+)
 from torchcontact.states import ContactState, ManipulationGraph, ManipulationState, StateTable
 
 _FORMAT = "torchcontact.DynaQ"
@@ -280,7 +289,11 @@ class DynaQ:
         return state in self._table
 
     def index(self, state: Hashable) -> int:
-        """The id of a known state (``KeyError`` if unknown)."""
+        """The id of a known state.
+
+        Raises:
+            UnknownStateError: ``state`` is unknown (a ``ValueError`` and a ``KeyError``).
+        """
         return self._table.index(state)
 
     def q_values(self, state: Hashable, *, dtype: torch.dtype = torch.float64) -> Tensor:
@@ -288,7 +301,11 @@ class DynaQ:
 
         Returns:
             ``(A,)`` new tensor of ``dtype``.
+
+        Raises:
+            ValueError: ``state`` is not hashable or ``dtype`` is not float32 or float64.
         """
+        dtype = _check_float_dtype(dtype)
         return torch.from_numpy(self._row(state).copy()).to(dtype)
 
     def q_table(self, *, dtype: torch.dtype = torch.float64) -> Tensor:
@@ -297,7 +314,11 @@ class DynaQ:
         Returns:
             ``(K, A)`` new tensor of ``dtype``; feed it to :func:`qmdp_action` with a belief
             over the graph's states.
+
+        Raises:
+            ValueError: ``dtype`` is not float32 or float64.
         """
+        dtype = _check_float_dtype(dtype)
         return torch.from_numpy(self._q[: self.num_states].copy()).to(dtype)
 
     def is_terminal(self, state: Hashable) -> bool:
@@ -612,41 +633,74 @@ class DynaQ:
 
         Raises:
             ValueError: ``state_dict`` is not a DynaQ state, was saved with another number of
-                actions, or its parts disagree with each other (the agent is then unchanged).
+                actions, misses an entry, has an entry of the wrong type, shape or range (a
+                count below 1, an id or action out of range, NaN or inf, an RNG state that
+                does not load), or its parts disagree with each other; the message names the
+                entry and the agent is unchanged.
         """
         restored = DynaQ(self._num_actions)
         restored._restore(state_dict)
         self.__dict__.update(restored.__dict__)
 
     def _restore(self, state_dict: Mapping[str, Any]) -> None:
-        """Load ``state_dict`` into this (fresh) agent; see :meth:`load_state_dict`."""
+        """Load ``state_dict`` into this (fresh) agent; see :meth:`load_state_dict`.
+
+        Every entry is checked (presence, type, shape, range) before use, and the parts are
+        checked against each other, so that a corrupt state raises ``ValueError`` naming the
+        entry instead of failing later (a zero count would make :meth:`sweep` divide by it).
+        """
         if not isinstance(state_dict, Mapping) or state_dict.get("format") != _FORMAT:
             raise ValueError(f"state_dict is not a {_FORMAT} state")
-        if state_dict["num_actions"] != self._num_actions:
+
+        def field(key: str) -> Any:
+            return check_field("state_dict", state_dict, key)
+
+        version = state_dict.get("version", 1)
+        if version != 1 or isinstance(version, bool):
+            raise ValueError(f"state_dict version must be 1, got {version!r}")
+        num_actions = check_int("state_dict num_actions", field("num_actions"), low=1)
+        if num_actions != self._num_actions:
             raise ValueError(
-                f"state_dict has num_actions = {state_dict['num_actions']}, "
-                f"this agent has {self._num_actions}"
+                f"state_dict has num_actions = {num_actions}, this agent has {self._num_actions}"
             )
-        states = list(state_dict["states"])
+        states = field("states")
+        if not isinstance(states, (list, tuple)):
+            raise ValueError(f"state_dict states must be a list, got {type(states).__name__}")
         K, A = len(states), self._num_actions
-        q_table = torch.as_tensor(state_dict["q_table"], dtype=torch.float64)
-        terminal = torch.as_tensor(state_dict["terminal"], dtype=torch.bool)
+        q_table = check_float("state_dict q_table", field("q_table"), what=f"({K}, {A})")
+        terminal = check_dtype("state_dict terminal", field("terminal"), torch.bool, f"({K},)")
         if q_table.shape != (K, A) or terminal.shape != (K,):
             raise ValueError(
                 f"state_dict q_table/terminal must have shapes ({K}, {A})/({K},), "
                 f"got {tuple(q_table.shape)}/{tuple(terminal.shape)}"
             )
-        if not bool(torch.isfinite(q_table).all()):
-            raise ValueError("state_dict q_table contains NaN or inf")
-        alpha, epsilon, steps = state_dict["alpha"], state_dict["epsilon"], state_dict["steps"]
-        planning_steps, sampler = state_dict["planning_steps"], state_dict["sampler"]
-        check_real("state_dict alpha", alpha, low=0.0, high=1.0, low_open=True)
-        check_real("state_dict epsilon", epsilon, low=0.0, high=1.0)
-        gamma = check_real("state_dict gamma", state_dict["gamma"], low=0.0, high=1.0)
-        check_int("state_dict planning_steps", planning_steps, low=0)
+        alpha = check_real("state_dict alpha", field("alpha"), low=0.0, high=1.0, low_open=True)
+        epsilon = check_real("state_dict epsilon", field("epsilon"), low=0.0, high=1.0)
+        gamma = check_real("state_dict gamma", field("gamma"), low=0.0, high=1.0)
+        planning_steps = check_int("state_dict planning_steps", field("planning_steps"), low=0)
+        sampler = field("sampler")
         if sampler not in ("index", "graph"):
             raise ValueError(f"state_dict sampler must be 'index' or 'graph', got {sampler!r}")
-        graph = ManipulationGraph.from_json(state_dict["graph"])
+        seed = check_int("state_dict seed", field("seed"), low=0)
+        steps = check_int("state_dict steps", field("steps"), low=0)
+        planning_updates = check_int(
+            "state_dict planning_updates", field("planning_updates"), low=0
+        )
+        torch_rng = check_generator_state("state_dict torch_rng", field("torch_rng"))
+        numpy_rng = np.random.default_rng()
+        try:
+            numpy_rng.bit_generator.state = copy.deepcopy(field("numpy_rng"))
+        except (TypeError, ValueError, KeyError) as error:
+            raise ValueError(
+                f"state_dict numpy_rng is not a numpy bit-generator state ({error!r})"
+            ) from None
+        text = field("graph")
+        if not isinstance(text, str):
+            raise ValueError(f"state_dict graph must be a JSON str, got {type(text).__name__}")
+        try:
+            graph = ManipulationGraph.from_json(text)
+        except ValueError as error:
+            raise ValueError(f"state_dict graph: {error}") from None
         initial_value = state_dict.get("initial_value", 0.0)  # absent before it existed
         self._initial_value = check_real("state_dict initial_value", initial_value)
         self._exploration = _check_exploration(
@@ -665,51 +719,108 @@ class DynaQ:
         if graph.states != self._graph.states or graph.num_actions != A:
             raise ValueError("state_dict graph does not match state_dict states")
         self._graph = graph
-        self._q[:K] = q_table.numpy()
+        self._q[:K] = q_table.to(torch.float64).numpy()
         self._terminal[:K] = terminal.numpy()
-        self._load_index(state_dict)
-        self._alpha, self._gamma, self._epsilon = float(alpha), gamma, float(epsilon)
-        self._planning_steps, self._sampler = int(planning_steps), sampler
-        self._seed = int(state_dict["seed"])
-        self._rng.bit_generator.state = copy.deepcopy(state_dict["numpy_rng"])
-        self._torch_rng.set_state(state_dict["torch_rng"])
-        self._steps, self._planning_updates = int(steps), int(state_dict["planning_updates"])
+        self._load_index(state_dict, K)
+        self._alpha, self._gamma, self._epsilon = alpha, gamma, epsilon
+        self._planning_steps, self._sampler = planning_steps, sampler
+        self._seed = seed
+        self._rng = numpy_rng
+        self._torch_rng.set_state(torch_rng)
+        self._steps, self._planning_updates = steps, planning_updates
 
-    def _load_index(self, state_dict: Mapping[str, Any]) -> None:
-        """Rebuild the sampling index and check it against the graph's counts."""
-        pairs = torch.as_tensor(state_dict["pairs"], dtype=torch.long).reshape(-1, 2).tolist()
-        columns = zip(
-            torch.as_tensor(state_dict["edge_pair"]).tolist(),
-            torch.as_tensor(state_dict["edge_next"]).tolist(),
-            torch.as_tensor(state_dict["edge_count"]).tolist(),
-            torch.as_tensor(state_dict["edge_reward_sum"], dtype=torch.float64).tolist(),
-            strict=True,
+    def _load_index(self, state_dict: Mapping[str, Any], K: int) -> None:
+        """Rebuild the sampling index and check it against the graph's counts.
+
+        Raises:
+            ValueError: an index entry has the wrong dtype or shape, an id, action or count
+                is out of range (every count ``>= 1``, every pair with an edge), a reward sum
+                is not finite, or the index disagrees with the graph.
+        """
+        A = self._num_actions
+        pairs_value = check_dtype(
+            "state_dict pairs", check_field("state_dict", state_dict, "pairs"), torch.long, "(P, 2)"
         )
-        self._pairs = _grow(self._pairs, len(pairs))
-        self._pair_totals = _grow(self._pair_totals, len(pairs))
+        if pairs_value.ndim != 2 or pairs_value.shape[1] != 2:
+            raise ValueError(
+                f"state_dict pairs must have shape (P, 2), got {tuple(pairs_value.shape)}"
+            )
+        P = pairs_value.shape[0]
+        for column, name, high in ((0, "state ids", K), (1, "actions", A)):
+            values = pairs_value[:, column]
+            if P and (int(values.min()) < 0 or int(values.max()) >= high):
+                raise ValueError(f"state_dict pairs {name} must lie in [0, {high})")
+        columns: list[Tensor] = []
+        for key, dtype in (
+            ("edge_pair", torch.long),
+            ("edge_next", torch.long),
+            ("edge_count", torch.long),
+            ("edge_reward_sum", torch.float64),
+        ):
+            name = f"state_dict {key}"
+            value = check_dtype(name, check_field("state_dict", state_dict, key), dtype, "(E,)")
+            if value.ndim != 1 or (columns and value.shape != columns[0].shape):
+                raise ValueError(
+                    f"{name} must have shape (E,) like state_dict edge_pair, "
+                    f"got {tuple(value.shape)}"
+                )
+            columns.append(value)
+        edge_pair, edge_next, edge_count, edge_sum = columns
+        if edge_pair.numel():
+            ranges: list[tuple[str, Tensor, int, int | None]] = [
+                ("edge_pair", edge_pair, 0, P),
+                ("edge_next", edge_next, 0, K),
+                ("edge_count", edge_count, 1, None),
+            ]
+            for key, values, low, upper in ranges:
+                too_high = upper is not None and int(values.max()) >= upper
+                if int(values.min()) < low or too_high:
+                    bounds = f"[{low}, {upper})" if upper is not None else f">= {low}"
+                    raise ValueError(f"state_dict {key} must lie in {bounds}")
+            if not all_finite(edge_sum):
+                raise ValueError("state_dict edge_reward_sum contains NaN or inf")
+        pairs = pairs_value.tolist()
+        self._pairs = _grow(self._pairs, P)
+        self._pair_totals = _grow(self._pair_totals, P)
         for pair, (s, a) in enumerate(pairs):
             self._pair_ids[(s, a)] = pair
             self._pairs[pair] = (s, a)
             self._edges.append([])
+        if len(self._pair_ids) != P:
+            raise ValueError("state_dict pairs must be distinct")
         counts: dict[tuple[int, int, int], tuple[int, float]] = {}
-        for pair, s2, count, total in columns:
+        rows = zip(
+            edge_pair.tolist(),
+            edge_next.tolist(),
+            edge_count.tolist(),
+            edge_sum.tolist(),
+            strict=True,
+        )
+        for pair, s2, count, total in rows:
             self._edges[pair].append([s2, count, total])
             self._pair_totals[pair] += count
             s, a = pairs[pair]
             counts[(s, a, s2)] = (count, total)
+        if P and int(self._pair_totals[:P].min()) < 1:
+            raise ValueError("state_dict pairs must each have an edge (a count N(s, a) >= 1)")
         graph_counts = {
             (i, a, j): (n, total)
             for i, a, j, n, total in json.loads(self._graph.to_json())["transitions"]
         }
-        if counts != graph_counts or len(self._pair_ids) != len(pairs):
+        if counts != graph_counts or sum(map(len, self._edges)) != len(counts):
             raise ValueError("state_dict sampling index does not match its graph")
 
     @classmethod
     def from_state_dict(cls, state_dict: Mapping[str, Any]) -> DynaQ:
-        """A new agent restored from :meth:`state_dict`."""
+        """A new agent restored from :meth:`state_dict`.
+
+        Raises:
+            ValueError: see :meth:`load_state_dict`.
+        """
         if not isinstance(state_dict, Mapping) or state_dict.get("format") != _FORMAT:
             raise ValueError(f"state_dict is not a {_FORMAT} state")
-        agent = cls(state_dict["num_actions"])
+        num_actions = check_field("state_dict", state_dict, "num_actions")
+        agent = cls(check_int("state_dict num_actions", num_actions, low=1))
         agent.load_state_dict(state_dict)
         return agent
 
@@ -723,6 +834,13 @@ class DynaQ:
             f"states={self.num_states}, "
             f"steps={self._steps})"
         )
+
+
+def _check_float_dtype(dtype: object) -> torch.dtype:
+    if dtype not in FLOAT_DTYPES:
+        raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}")
+    assert isinstance(dtype, torch.dtype)
+    return dtype
 
 
 def _check_exploration(name: str, value: object) -> Exploration:

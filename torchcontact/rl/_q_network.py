@@ -35,7 +35,7 @@ class QNetwork(nn.Module):
         device: parameter device.
 
     Raises:
-        ValueError: a size is out of range.
+        ValueError: a size is out of range or ``dtype`` is not float32 or float64.
     """
 
     def __init__(
@@ -53,7 +53,11 @@ class QNetwork(nn.Module):
         self.num_states = check_int("num_states", num_states, low=1)
         self.num_features = check_int("num_features", num_features, low=0)
         self.num_actions = check_int("num_actions", num_actions, low=1)
+        if isinstance(hidden, (str, bytes)) or not isinstance(hidden, Sequence):
+            raise ValueError(f"hidden must be a sequence of ints, got {hidden!r}")
         widths = [check_int("hidden", width, low=1) for width in hidden]
+        if dtype is not None and dtype not in FLOAT_DTYPES:
+            raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}")
         factory: dict[str, Any] = {"dtype": dtype, "device": device}
         self.table = nn.Parameter(torch.zeros(self.num_states, self.num_actions, **factory))
         layers: list[nn.Module] = []

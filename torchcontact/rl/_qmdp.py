@@ -7,7 +7,7 @@ import math
 import torch
 from torch import Tensor
 
-from torchcontact._checks import check_float
+from torchcontact._checks import all_finite, check_float
 
 
 def qmdp_values(q_values: Tensor, probabilities: Tensor) -> Tensor:
@@ -28,7 +28,8 @@ def qmdp_values(q_values: Tensor, probabilities: Tensor) -> Tensor:
 
     Raises:
         ValueError: an input is not a finite floating tensor, ``K`` differs, the batch shapes
-            do not broadcast, or a row of ``probabilities`` is negative or does not sum to 1.
+            do not broadcast, a row of ``probabilities`` is negative or does not sum to 1, or
+            the weighted sum overflows the dtype.
 
     References:
         M. L. Littman, A. R. Cassandra and L. P. Kaelbling, "Learning policies for partially
@@ -59,7 +60,10 @@ def qmdp_values(q_values: Tensor, probabilities: Tensor) -> Tensor:
         raise ValueError(f"probabilities must sum to 1 over the last dim (within {tolerance:.1e})")
     dtype = torch.promote_types(q_values.dtype, probabilities.dtype)
     weights = probabilities.to(dtype).unsqueeze(-2)
-    return torch.matmul(weights, q_values.to(dtype)).squeeze(-2)
+    values = torch.matmul(weights, q_values.to(dtype)).squeeze(-2)
+    if values.numel() and not all_finite(values):
+        raise ValueError(f"q_values are too large: the weighted sum overflows {dtype}")
+    return values
 
 
 def qmdp_action(q_values: Tensor, probabilities: Tensor) -> Tensor:

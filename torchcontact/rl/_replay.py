@@ -2,13 +2,23 @@
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Mapping, Sequence
 from typing import Any, NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
-from torchcontact._checks import FLOAT_DTYPES, all_finite, check_int
+from torchcontact._checks import (
+    FLOAT_DTYPES,
+    all_finite,
+    check_dtype,
+    check_field,
+    check_float,
+    check_generator_state,
+    check_int,
+)
 
 _FORMAT = "torchcontact.ReplayBuffer"
 
@@ -130,7 +140,7 @@ class ReplayBuffer:
                 f"next_observation must hold {N} observations like observation, "
                 f"got {tuple(next_observation.shape)}"
             )
-        actions = torch.as_tensor(action, device=self.device)
+        actions = _as_tensor("action", action, self.device)
         if (
             actions.dtype.is_floating_point
             or actions.dtype.is_complex
@@ -140,12 +150,13 @@ class ReplayBuffer:
         actions = self._column("action", actions.long(), N)
         if N and int(actions.min()) < 0:
             raise ValueError("action must be >= 0")
-        rewards = self._column(
-            "reward", torch.as_tensor(reward, dtype=self.dtype, device=self.device), N
-        )
+        rewards = _as_tensor("reward", reward, self.device)
+        if rewards.dtype.is_complex or rewards.dtype is torch.bool:
+            raise ValueError(f"reward must be a real number or tensor, got {rewards.dtype}")
+        rewards = self._column("reward", rewards.to(self.dtype), N)
         if not all_finite(rewards):
             raise ValueError("reward contains NaN or inf")
-        terminals = torch.as_tensor(terminal, device=self.device)
+        terminals = _as_tensor("terminal", terminal, self.device)
         if terminals.dtype != torch.bool:
             raise ValueError(f"terminal must be a bool or bool tensor, got {terminals.dtype}")
         terminals = self._column("terminal", terminals, N)
@@ -233,36 +244,54 @@ class ReplayBuffer:
         """
         if not isinstance(state_dict, Mapping) or state_dict.get("format") != _FORMAT:
             raise ValueError(f"state_dict is not a {_FORMAT} state")
-        if state_dict["capacity"] != self._capacity:
+
+        def field(key: str) -> Any:
+            return check_field("state_dict", state_dict, key)
+
+        capacity = check_int("state_dict capacity", field("capacity"), low=1)
+        if capacity != self._capacity:
+            raise ValueError(f"state_dict has capacity {capacity}, this buffer {self._capacity}")
+        shape = field("observation_shape")
+        if not isinstance(shape, (tuple, list)) or tuple(shape) != self._shape:
             raise ValueError(
-                f"state_dict has capacity {state_dict['capacity']}, this buffer {self._capacity}"
+                f"state_dict has observation_shape {shape!r}, this buffer {self._shape}"
             )
-        if tuple(state_dict["observation_shape"]) != self._shape:
-            raise ValueError(
-                f"state_dict has observation_shape {tuple(state_dict['observation_shape'])}, "
-                f"this buffer {self._shape}"
-            )
-        position = check_int("state_dict position", state_dict["position"], low=0)
-        size = check_int("state_dict size", state_dict["size"], low=0)
+        position = check_int("state_dict position", field("position"), low=0)
+        size = check_int("state_dict size", field("size"), low=0)
         if position >= self._capacity or size > self._capacity:
             raise ValueError("state_dict position/size exceed the capacity")
-        fields = ("observations", "actions", "rewards", "next_observations", "terminals")
-        for name in fields:
+        seed = check_int("state_dict seed", field("seed"), low=0)
+        generator = check_generator_state("state_dict generator", field("generator"))
+        values: dict[str, Tensor] = {}
+        for name in ("observations", "actions", "rewards", "next_observations", "terminals"):
             stored: Tensor = getattr(self, f"_{name}")
-            value = torch.as_tensor(state_dict[name])
+            value = field(name)
+            if name in ("actions", "terminals"):
+                value = check_dtype(f"state_dict {name}", value, stored.dtype, "")
+            else:
+                value = check_float(f"state_dict {name}", value)
             if value.shape != stored.shape:
                 raise ValueError(
                     f"state_dict {name} must have shape {tuple(stored.shape)}, "
                     f"got {tuple(value.shape)}"
                 )
-        for name in fields:
-            getattr(self, f"_{name}").copy_(torch.as_tensor(state_dict[name]))
-        self._position, self._size = position, size
-        self._seed = int(state_dict["seed"])
-        self._generator.set_state(state_dict["generator"])
+            values[name] = value
+        if bool((values["actions"] < 0).any()):
+            raise ValueError("state_dict actions must be >= 0")
+        for name, value in values.items():
+            getattr(self, f"_{name}").copy_(value)
+        self._position, self._size, self._seed = position, size, seed
+        self._generator.set_state(generator)
 
     def __repr__(self) -> str:
         return (
             f"ReplayBuffer(capacity={self._capacity}, observation_shape={self._shape}, "
             f"size={self._size}, dtype={self.dtype}, device={self.device})"
         )
+
+
+def _as_tensor(name: str, value: object, device: torch.device) -> Tensor:
+    """``value`` (a number, a bool or a tensor) as a tensor on ``device``."""
+    if not isinstance(value, (Tensor, numbers.Number, np.bool_)):
+        raise ValueError(f"{name} must be a number or a tensor, got {type(value).__name__}")
+    return torch.as_tensor(value, device=device)

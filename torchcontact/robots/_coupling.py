@@ -12,12 +12,13 @@ with ``C`` ``(n_full, n)`` and ``c`` ``(n_full,)``, built from the mimic tags. V
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from torchcontact._checks import check_float
 from torchcontact.robots._urdf import UrdfMimic
 
 
@@ -41,7 +42,7 @@ class JointCoupling:
 
     @classmethod
     def from_mimic(
-        cls, full_names: Sequence[str], mimic: dict[str, UrdfMimic | None]
+        cls, full_names: Sequence[str], mimic: Mapping[str, UrdfMimic | None]
     ) -> JointCoupling:
         """Build the coupling that URDF mimic tags describe.
 
@@ -53,9 +54,13 @@ class JointCoupling:
             The coupling; joints without a mimic tag are the actuated ones, in chain order.
 
         Raises:
-            ValueError: A joint mimics an unknown joint or a joint that itself mimics another.
+            ValueError: ``full_names`` is not a sequence of distinct strings, ``mimic`` is not a
+                mapping, or a joint mimics an unknown joint or a joint that itself mimics
+                another.
         """
-        names = tuple(full_names)
+        names = _check_names(full_names)
+        if not isinstance(mimic, Mapping):
+            raise ValueError(f"mimic must be a mapping, got {type(mimic).__name__}")
         actuated = tuple(name for name in names if mimic.get(name) is None)
         matrix = torch.zeros(len(names), len(actuated), dtype=torch.float64)
         offset = torch.zeros(len(names), dtype=torch.float64)
@@ -81,8 +86,11 @@ class JointCoupling:
 
         Returns:
             The identity coupling.
+
+        Raises:
+            ValueError: ``full_names`` is not a sequence of distinct strings.
         """
-        names = tuple(full_names)
+        names = _check_names(full_names)
         return cls(
             full_names=names,
             actuated_names=names,
@@ -107,11 +115,25 @@ class JointCoupling:
             ``(*B, n_full)`` in ``q``'s dtype and device.
 
         Raises:
-            ValueError: ``q``'s last dimension is not n.
+            ValueError: ``q`` is not a finite float32/float64 tensor or its last dimension is
+                not n.
         """
         n = len(self.actuated_names)
+        q = check_float("q", q)
         if q.ndim < 1 or q.shape[-1] != n:
             raise ValueError(f"q must have shape (*B, {n}), got {tuple(q.shape)}")
         matrix = self.matrix.to(dtype=q.dtype, device=q.device)
         offset = self.offset.to(dtype=q.dtype, device=q.device)
         return q @ matrix.T + offset
+
+
+def _check_names(full_names: object) -> tuple[str, ...]:
+    """``full_names`` as a tuple of distinct strings."""
+    if (
+        isinstance(full_names, str)
+        or not isinstance(full_names, Sequence)
+        or not all(isinstance(name, str) for name in full_names)
+        or len(set(full_names)) != len(full_names)
+    ):
+        raise ValueError(f"full_names must be a sequence of distinct strings, got {full_names!r}")
+    return tuple(full_names)

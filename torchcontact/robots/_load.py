@@ -53,11 +53,13 @@ def load(name: str, *, coupled: bool = True) -> Robot:
         A new :class:`Robot`.
 
     Raises:
-        ValueError: ``name`` is not a known robot.
+        ValueError: ``name`` is not a known robot or ``coupled`` is not a bool.
         FileNotFoundError: The ``models/`` directory or the robot's file is missing.
     """
     if not isinstance(name, str) or name not in ROBOT_NAMES:
         raise ValueError(f"name must be one of {list(ROBOT_NAMES)}, got {name!r}")
+    if not isinstance(coupled, bool):
+        raise ValueError(f"coupled must be a bool, got {coupled!r}")
     path = models_dir() / f"{name}.urdf"
     if not path.is_file():
         raise FileNotFoundError(f"robot description {path} is missing")

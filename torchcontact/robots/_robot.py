@@ -30,6 +30,7 @@ from torchcontact._checks import (
     check_like,
     check_trailing,
     check_unit_rows,
+    read_text_file,
 )
 from torchcontact.robots._coupling import JointCoupling
 from torchcontact.robots._urdf import UrdfModel, build_chain, parse_urdf
@@ -102,11 +103,14 @@ class Robot:
             The robot.
 
         Raises:
-            FileNotFoundError: ``path`` does not exist.
-            ValueError: The URDF is malformed or uses unsupported features.
+            ValueError: ``path`` names no readable UTF-8 file, ``coupled`` is not a bool, or the
+                URDF is malformed or uses unsupported features.
         """
-        source = Path(path)
-        model = parse_urdf(source.read_text(encoding="utf-8"), source=str(source))
+        if not isinstance(coupled, bool):
+            raise ValueError(f"coupled must be a bool, got {coupled!r}")
+        text = read_text_file("path", path)
+        source = Path(str(path))
+        model = parse_urdf(text, source=str(source))
         chain = build_chain(model)
         full_names = tuple(str(n) for n in chain.get_joint_parameter_names())
         joints = {joint.name: joint for joint in model.joints}
@@ -212,9 +216,8 @@ class Robot:
             and device as ``q``.
 
         Raises:
-            TypeError: ``q`` is not a tensor.
-            ValueError: ``q`` has the wrong last dimension or dtype or holds NaN/inf, or ``link`` is
-                not a link name.
+            ValueError: ``q`` is not a tensor, has the wrong last dimension or dtype or holds
+                NaN/inf, or ``link`` is not a link name.
         """
         q = self._check_q(q)
         frame = None if link is None else self._frame_index(link)
@@ -241,9 +244,8 @@ class Robot:
             ``B'``; same dtype and device as ``q``.
 
         Raises:
-            TypeError: ``q`` or ``point`` is not a tensor.
-            ValueError: Wrong shape, dtype, device, NaN/inf, non-broadcastable batches, or an
-                unknown ``link``.
+            ValueError: ``q`` or ``point`` is not a tensor, or has the wrong shape, dtype or
+                device, NaN/inf, non-broadcastable batches, or an unknown ``link``.
         """
         q = self._check_q(q)
         frame = self._frame_index(link)
@@ -308,9 +310,9 @@ class Robot:
             ``Jn`` ``(*B, dof)`` and ``Jt`` ``(*B, D, dof)``.
 
         Raises:
-            TypeError: An argument is not a tensor.
-            ValueError: Wrong shape, dtype, device, NaN/inf, a non-unit normal or tangent, a tangent
-                not orthogonal to the normal, non-broadcastable batches, or an unknown ``link``.
+            ValueError: An argument is not a tensor, or wrong shape, dtype, device, NaN/inf, a
+                non-unit normal or tangent, a tangent not orthogonal to the normal,
+                non-broadcastable batches, or an unknown ``link``.
         """
         q = self._check_q(q)
         point = check_float("point", point)
@@ -334,7 +336,8 @@ class Robot:
             ]
         )
         tol = 1e-6 if q.dtype == torch.float64 else 1e-3
-        if float((tangents @ normal.unsqueeze(-1)).abs().max()) > tol:
+        dots = tangents @ normal.unsqueeze(-1)
+        if dots.numel() and float(dots.abs().max()) > tol:
             raise ValueError(f"tangents must be orthogonal to normal (|t · n| <= {tol:g})")
         linear = self.jacobian(q, link, point=point)[..., :3, :]
         jn = (normal.unsqueeze(-2) @ linear).squeeze(-2)

@@ -25,7 +25,7 @@ from torchcontact.states._manipulation_state import (
     PoseGrid,
     manipulation_states,
 )
-from torchcontact.states._registry import ContactStateRegistry, StateTable
+from torchcontact.states._registry import ContactStateRegistry, StateTable, UnknownStateError
 from torchcontact.states._tactile import TactileArray, rectangle_sensors
 
 __all__ = [
@@ -41,6 +41,7 @@ __all__ = [
     "PoseGrid",
     "StateTable",
     "TactileArray",
+    "UnknownStateError",
     "contact_states",
     "manipulation_states",
     "object_contacts",

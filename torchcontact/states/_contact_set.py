@@ -160,8 +160,20 @@ class ContactSet:
         return table[self.partner]
 
     def __getitem__(self, index: Any) -> ContactSet:
-        """Index the batch dimensions (slot and coordinate dimensions are kept)."""
+        """Index the batch dimensions (slot and coordinate dimensions are kept).
+
+        Raises:
+            ValueError: ``index`` is out of range or not a valid index of the batch.
+        """
         assert self.mask is not None
+        batch = torch.empty(self.batch_shape, dtype=torch.bool, device="meta")
+        try:
+            batch[index]
+        except (IndexError, TypeError, RuntimeError) as error:
+            shape = tuple(self.batch_shape)
+            raise ValueError(
+                f"index {index!r} is not valid for batch shape {shape} ({error})"
+            ) from None
         return replace(
             self,
             points=self.points[index],

@@ -8,6 +8,7 @@ from typing import Any
 
 import torch
 
+from torchcontact._checks import check_instance
 from torchcontact.states._contact_set import PARTNER_KINDS, ContactSet, PartnerKind
 from torchcontact.states._grid import FeatureGrid
 
@@ -29,7 +30,13 @@ class ContactFeature:
     sliding: bool
 
     def __post_init__(self) -> None:
+        if self.kind not in tuple(PartnerKind):
+            kinds = [k.value for k in PartnerKind]
+            raise ValueError(f"kind must be one of {kinds}, got {self.kind!r}")
         object.__setattr__(self, "kind", PartnerKind(self.kind))
+        for name in ("cell", "direction"):
+            if not isinstance(getattr(self, name), (tuple, list)):
+                raise ValueError(f"{name} must be a tuple of ints, got {getattr(self, name)!r}")
         cell, direction = tuple(self.cell), tuple(self.direction)
         if len(cell) not in (2, 3) or len(direction) != len(cell):
             raise ValueError(
@@ -48,9 +55,15 @@ class ContactFeature:
 
     @classmethod
     def from_json(cls, data: Any) -> ContactFeature:
-        """Inverse of :meth:`to_json`."""
+        """Inverse of :meth:`to_json`.
+
+        Raises:
+            ValueError: ``data`` is not ``[kind, cell, direction, sliding]`` of a feature.
+        """
+        if not isinstance(data, (list, tuple)) or len(data) != 4:
+            raise ValueError(f"data must be [kind, cell, direction, sliding], got {data!r}")
         kind, cell, direction, sliding = data
-        return cls(PartnerKind(kind), tuple(cell), tuple(direction), sliding)
+        return cls(kind, cell, direction, sliding)
 
 
 @dataclass(frozen=True, order=True)
@@ -74,9 +87,11 @@ class ContactState:
     features: tuple[ContactFeature, ...] = ()
 
     def __post_init__(self) -> None:
+        if not isinstance(self.features, (tuple, list)) or not all(
+            isinstance(f, ContactFeature) for f in self.features
+        ):
+            raise ValueError(f"features must be a tuple of ContactFeature, got {self.features!r}")
         features = tuple(sorted(self.features))
-        if not all(isinstance(f, ContactFeature) for f in features):
-            raise ValueError("features must hold ContactFeature objects")
         keys = [(f.kind, f.cell, f.direction) for f in features]
         if len(set(keys)) != len(keys):
             raise ValueError("features must hold at most one feature per (kind, cell, direction)")
@@ -100,7 +115,13 @@ class ContactState:
 
     @classmethod
     def from_json(cls, data: Any) -> ContactState:
-        """Inverse of :meth:`to_json`."""
+        """Inverse of :meth:`to_json`.
+
+        Raises:
+            ValueError: ``data`` is not a list of features.
+        """
+        if not isinstance(data, list):
+            raise ValueError(f"data must be a list of features, got {type(data).__name__}")
         return cls(tuple(ContactFeature.from_json(f) for f in data))
 
     def __str__(self) -> str:
@@ -133,6 +154,8 @@ def contact_states(contacts: ContactSet, grid: FeatureGrid) -> list[ContactState
     Raises:
         ValueError: the grid's dimension differs from the contacts'.
     """
+    check_instance("contacts", contacts, ContactSet)
+    check_instance("grid", grid, FeatureGrid)
     if grid.dim != contacts.dim:
         raise ValueError(f"grid.dim must equal contacts.dim = {contacts.dim}, got {grid.dim}")
     points, normals = contacts.object_frame()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 from collections.abc import Callable, Iterable, Mapping
 from pathlib import Path
 from typing import Any
@@ -11,11 +12,32 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcontact._checks import check_float
+from torchcontact._checks import (
+    FLOAT_DTYPES,
+    check_field,
+    check_float,
+    check_int,
+    check_real,
+    read_text_file,
+)
 from torchcontact.states._manipulation_state import ManipulationState
 from torchcontact.states._registry import StateTable
 
 _FORMAT = "torchcontact.ManipulationGraph"
+
+
+def _float_dtype(dtype: torch.dtype | None) -> torch.dtype:
+    """``dtype`` (float32 or float64), or torch's default dtype for ``None``."""
+    if dtype is None:
+        return torch.get_default_dtype()
+    if dtype not in FLOAT_DTYPES:
+        raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}")
+    return dtype
+
+
+def _is_real(value: object) -> bool:
+    """Whether ``value`` is a real number (not a bool)."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 class ManipulationGraph:
@@ -39,8 +61,8 @@ class ManipulationGraph:
       known to happen, so the state persists); adding states changes ``K`` and so the
       smoothed probabilities of every pair;
     * a transition never observed has mean reward ``default_reward``;
-    * a state that is not in the graph raises ``KeyError`` (register it with :meth:`add_state`
-      to get the prior above).
+    * a state that is not in the graph raises :class:`UnknownStateError`, a ``ValueError``
+      and a ``KeyError`` (register it with :meth:`add_state` to get the prior above).
 
     The graph exports the filter's mode-transition model (:meth:`transition_tensor`,
     :meth:`transition_matrix`, with :attr:`states` as the id ↔ state table), the sampling model
@@ -62,11 +84,15 @@ class ManipulationGraph:
     def __init__(
         self, num_actions: int, *, smoothing: float = 0.0, default_reward: float = 0.0
     ) -> None:
-        if isinstance(num_actions, bool) or not isinstance(num_actions, int) or num_actions < 1:
-            raise ValueError(f"num_actions must be an int >= 1, got {num_actions!r}")
-        if not math.isfinite(smoothing) or smoothing < 0:
+        if (
+            isinstance(num_actions, bool)
+            or not isinstance(num_actions, int)
+            or not 1 <= num_actions < 2**31
+        ):
+            raise ValueError(f"num_actions must be an int >= 1 and < 2**31, got {num_actions!r}")
+        if not _is_real(smoothing) or not math.isfinite(smoothing) or smoothing < 0:
             raise ValueError(f"smoothing must be a finite number >= 0, got {smoothing!r}")
-        if not math.isfinite(default_reward):
+        if not _is_real(default_reward) or not math.isfinite(default_reward):
             raise ValueError(f"default_reward must be finite, got {default_reward!r}")
         self._num_actions = num_actions
         self._smoothing = float(smoothing)
@@ -105,7 +131,7 @@ class ManipulationGraph:
         return state in self._table
 
     def index(self, state: ManipulationState) -> int:
-        """The id of a known state (``KeyError`` if unknown)."""
+        """The id of a known state (:class:`UnknownStateError` if unknown)."""
         return self._table.index(state)
 
     def add_state(self, state: ManipulationState) -> int:
@@ -132,7 +158,7 @@ class ManipulationGraph:
                 ``[0, A)``, or the reward is not finite.
         """
         self._check_action(action)
-        if not math.isfinite(reward):
+        if not _is_real(reward) or not math.isfinite(reward):
             raise ValueError(f"reward must be finite, got {reward!r}")
         for name, value in (("state", state), ("next_state", next_state)):
             if not isinstance(value, ManipulationState):
@@ -185,7 +211,7 @@ class ManipulationGraph:
         """
         self._check_action(action)
         row = self._probability_row(self.index(state), action)
-        return row.to(dtype or torch.get_default_dtype())
+        return row.to(_float_dtype(dtype))
 
     def _probability_row(self, source: int, action: int) -> Tensor:
         """``(K,)`` float64 ``P(· | m_source, a)``, with the arithmetic of :meth:`_model`."""
@@ -238,7 +264,7 @@ class ManipulationGraph:
             ``dtype`` is given), computed in float64.
         """
         probabilities, _ = self._model()
-        return probabilities.to(dtype or torch.get_default_dtype(), copy=True)
+        return probabilities.to(_float_dtype(dtype), copy=True)
 
     def transition_matrix(
         self, action_probabilities: Tensor | None = None, *, dtype: torch.dtype | None = None
@@ -274,7 +300,7 @@ class ManipulationGraph:
             if bool((policy < 0).any()) or float(error) > 1e-6:
                 raise ValueError("action_probabilities must be >= 0 with rows summing to 1")
         matrix = torch.einsum("ia,aij->ij", policy, self._model()[0])
-        return matrix.to(dtype or torch.get_default_dtype())
+        return matrix.to(_float_dtype(dtype))
 
     def reward_tensor(self, *, dtype: torch.dtype | None = None) -> Tensor:
         """Mean rewards ``R[a, i, j]`` of ``(m_i, a, m_j)``; ``default_reward`` where unseen.
@@ -283,7 +309,7 @@ class ManipulationGraph:
             ``(A, K, K)`` tensor (a new tensor of the default dtype unless ``dtype`` is given).
         """
         _, rewards = self._model()
-        return rewards.to(dtype or torch.get_default_dtype(), copy=True)
+        return rewards.to(_float_dtype(dtype), copy=True)
 
     def sample(
         self,
@@ -298,7 +324,8 @@ class ManipulationGraph:
         ``(A, K, K)`` model.
 
         Raises:
-            KeyError: ``state`` is unknown.
+            UnknownStateError: ``state`` is unknown (a ``ValueError`` and a ``KeyError``).
+            ValueError: ``action`` is not in ``[0, A)``.
         """
         self._check_action(action)
         source = self.index(state)
@@ -374,24 +401,68 @@ class ManipulationGraph:
         return json.dumps(data)
 
     @classmethod
-    def from_json(cls, text: str) -> ManipulationGraph:
+    def from_json(cls, text: str | bytes) -> ManipulationGraph:
         """Inverse of :meth:`to_json`.
 
+        Every field is checked at load: ids in ``[0, K)``, actions in ``[0, A)``, counts
+        ``>= 1``, finite reward sums, distinct states and transitions.
+
         Raises:
-            ValueError: ``text`` is not a saved manipulation graph.
+            ValueError: ``text`` is not JSON or not a saved manipulation graph; the message
+                names the field (and the entry) at fault.
         """
-        data: Any = json.loads(text)
+        if not isinstance(text, (str, bytes, bytearray)):
+            raise ValueError(f"text must be a JSON str, got {type(text).__name__}")
+        try:
+            data: Any = json.loads(text)
+        except ValueError as error:  # JSONDecodeError and UnicodeDecodeError
+            raise ValueError(f"text is not valid JSON ({error})") from None
         if not isinstance(data, dict) or data.get("format") != _FORMAT:
             raise ValueError(f"text is not a {_FORMAT} JSON document")
-        graph = cls(
-            data["num_actions"],
-            smoothing=data["smoothing"],
-            default_reward=data["default_reward"],
-        )
-        for state in data["states"]:
-            graph.add_state(ManipulationState.from_json(state))
-        for i, a, j, n, total in data["transitions"]:
-            graph._edges.setdefault((i, a), {})[j] = [n, total]
+
+        def field(key: str) -> Any:
+            return check_field("text", data, key)
+
+        if data.get("version", 1) != 1 or isinstance(data.get("version"), bool):
+            raise ValueError(f"text field 'version' must be 1, got {data.get('version')!r}")
+        try:
+            graph = cls(
+                field("num_actions"),
+                smoothing=field("smoothing"),
+                default_reward=field("default_reward"),
+            )
+        except ValueError as error:
+            raise ValueError(f"text field {error}") from None
+        states = field("states")
+        if not isinstance(states, list):
+            raise ValueError(f"text field 'states' must be a list, got {type(states).__name__}")
+        for k, entry in enumerate(states):
+            try:
+                state = ManipulationState.from_json(entry)
+            except ValueError as error:
+                raise ValueError(f"text field 'states'[{k}]: {error}") from None
+            if graph.add_state(state) != k:
+                raise ValueError(f"text field 'states'[{k}] repeats an earlier state")
+        transitions = field("transitions")
+        if not isinstance(transitions, list):
+            raise ValueError(
+                f"text field 'transitions' must be a list, got {type(transitions).__name__}"
+            )
+        K, A = graph.num_states, graph.num_actions
+        for k, row in enumerate(transitions):
+            where = f"text field 'transitions'[{k}]"
+            if not isinstance(row, list) or len(row) != 5:
+                raise ValueError(f"{where} must be [m, a, m', count, reward_sum], got {row!r}")
+            i, a, j, n, total = row
+            check_int(f"{where} m", i, low=0, high=K)
+            check_int(f"{where} a", a, low=0, high=A)
+            check_int(f"{where} m'", j, low=0, high=K)
+            check_int(f"{where} count", n, low=1, high=2**53)
+            total = check_real(f"{where} reward_sum", total)
+            entry = graph._edges.setdefault((i, a), {})
+            if j in entry:
+                raise ValueError(f"{where} repeats the transition ({i}, {a}, {j})")
+            entry[j] = [n, total]
         return graph
 
     def merged(self, key: Callable[[ManipulationState], ManipulationState]) -> ManipulationGraph:
@@ -427,8 +498,12 @@ class ManipulationGraph:
 
     @classmethod
     def load(cls, path: str | Path) -> ManipulationGraph:
-        """Read a graph written by :meth:`save`."""
-        return cls.from_json(Path(path).read_text())
+        """Read a graph written by :meth:`save`.
+
+        Raises:
+            ValueError: ``path`` cannot be read, or see :meth:`from_json`.
+        """
+        return cls.from_json(read_text_file("path", path))
 
     def to_networkx(self) -> Any:
         """The graph as a ``networkx.DiGraph`` over state ids.

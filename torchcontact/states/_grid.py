@@ -95,7 +95,7 @@ class FeatureGrid:
         check_float("normals", normals, trailing=(d,), what=f"(*B, {d})")
         if normals.shape != points.shape:
             raise ValueError(f"normals must have shape {tuple(points.shape)}, got {normals.shape}")
-        cells = torch.floor(points / self.cell_size + 0.5).long()
+        cells = _to_long("points", torch.floor(points / self.cell_size + 0.5))
         axis = normals.abs().argmax(dim=-1, keepdim=True)
         major = normals.gather(-1, axis)
         others = torch.tensor(_OTHER_AXES[d], device=normals.device)[axis.squeeze(-1)]
@@ -146,3 +146,14 @@ class FeatureGrid:
         vector = vector.scatter(-1, axis, sign).scatter(-1, others, u)
         unit: Tensor = vector / torch.linalg.vector_norm(vector, dim=-1, keepdim=True)
         return unit
+
+
+#: Keys beyond this magnitude would overflow int64 (or lose precision in the float).
+_LARGEST_KEY = 2.0**52
+
+
+def _to_long(name: str, keys: Tensor) -> Tensor:
+    """Integer-valued float ``keys`` as long, refusing values that do not fit exactly."""
+    if keys.numel() and float(keys.abs().max()) > _LARGEST_KEY:
+        raise ValueError(f"{name} is too large for the grid: a key exceeds 2**52 cells")
+    return keys.long()

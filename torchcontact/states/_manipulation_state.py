@@ -9,11 +9,11 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcontact._checks import check_dim, check_positive
+from torchcontact._checks import check_dim, check_field, check_instance, check_positive
 from torchcontact.states._contact_set import ContactSet
 from torchcontact.states._contact_state import ContactState, contact_states
 from torchcontact.states._frames import check_pose, relative_pose
-from torchcontact.states._grid import FeatureGrid
+from torchcontact.states._grid import FeatureGrid, _to_long
 
 
 @dataclass(frozen=True)
@@ -63,7 +63,7 @@ class PoseGrid:
             rotation-vector cells) spatial.
         """
         pose = check_pose("pose", pose, self.dim)
-        position = torch.floor(pose[..., : self.dim] / self.position_step + 0.5).long()
+        position = _to_long("pose", torch.floor(pose[..., : self.dim] / self.position_step + 0.5))
         if self.dim == 2:
             n = self.angle_bins
             k = torch.floor(pose[..., 2] / (2 * math.pi / n) + 0.5).long().remainder(n)
@@ -75,7 +75,7 @@ class PoseGrid:
         angle = 2 * torch.atan2(sine, w)
         # θ / sin(θ/2) → 2 / w as sin(θ/2) → 0 (and w → 1).
         scale = torch.where(sine > 0, angle / torch.where(sine > 0, sine, 1.0), 2.0 / w)
-        rotation = torch.floor(v * scale / self.angle_step + 0.5).long()
+        rotation = _to_long("pose", torch.floor(v * scale / self.angle_step + 0.5))
         return torch.cat([position, rotation], dim=-1)
 
 
@@ -98,6 +98,8 @@ class ManipulationState:
     contact: ContactState
 
     def __post_init__(self) -> None:
+        if not isinstance(self.pose, (tuple, list)):
+            raise ValueError(f"pose must be a tuple of ints, got {self.pose!r}")
         pose = tuple(self.pose)
         if not all(isinstance(i, int) and not isinstance(i, bool) for i in pose):
             raise ValueError(f"pose must hold ints, got {self.pose!r}")
@@ -116,8 +118,16 @@ class ManipulationState:
 
     @classmethod
     def from_json(cls, data: Any) -> ManipulationState:
-        """Inverse of :meth:`to_json`."""
-        return cls(tuple(data["pose"]), ContactState.from_json(data["contact"]))
+        """Inverse of :meth:`to_json`.
+
+        Raises:
+            ValueError: ``data`` is not ``{"pose": [...], "contact": [...]}`` of a state.
+        """
+        pose = check_field("data", data, "pose")
+        contact = check_field("data", data, "contact")
+        if not isinstance(pose, list):
+            raise ValueError(f"data['pose'] must be a list of ints, got {pose!r}")
+        return cls(tuple(pose), ContactState.from_json(contact))
 
     def __str__(self) -> str:
         """A short label, the pose key and the contact state, e.g. ``"(-6, 0, 0) E2st"``."""
@@ -148,6 +158,9 @@ def manipulation_states(
     Raises:
         ValueError: the grids' or the pose's dimension or shape do not match the contacts.
     """
+    check_instance("contacts", contacts, ContactSet)
+    check_instance("contact_grid", contact_grid, FeatureGrid)
+    check_instance("pose_grid", pose_grid, PoseGrid)
     if pose_grid.dim != contacts.dim:
         raise ValueError(f"pose_grid.dim must equal contacts.dim = {contacts.dim}")
     robot_pose = check_pose("robot_pose", robot_pose, contacts.dim)

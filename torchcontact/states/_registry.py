@@ -11,13 +11,34 @@ from typing import Any, Generic, TypeVar
 import torch
 from torch import Tensor
 
+from torchcontact._checks import check_field, check_int, read_text_file
 from torchcontact.states._contact_set import ContactSet
 from torchcontact.states._contact_state import ContactState, contact_states
 from torchcontact.states._grid import FeatureGrid
 
 S = TypeVar("S", bound=Hashable)
 
+
+def _check_hashable(name: str, state: S) -> S:
+    try:
+        hash(state)
+    except TypeError:
+        raise ValueError(f"{name} must be hashable, got {type(state).__name__}") from None
+    return state
+
+
 _FORMAT = "torchcontact.ContactStateRegistry"
+
+
+class UnknownStateError(KeyError, ValueError):
+    """A state that is not in a :class:`StateTable` was looked up.
+
+    A ``ValueError`` like every bad argument of the library, and a ``KeyError`` like a failed
+    mapping lookup.
+    """
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""
 
 
 class StateTable(Generic[S]):
@@ -36,7 +57,12 @@ class StateTable(Generic[S]):
             self.add(state)
 
     def add(self, state: S) -> int:
-        """The id of ``state``, giving it the next free id if it is new."""
+        """The id of ``state``, giving it the next free id if it is new.
+
+        Raises:
+            ValueError: ``state`` is not hashable.
+        """
+        _check_hashable("state", state)
         index = self._ids.get(state)
         if index is None:
             index = self._ids[state] = len(self._states)
@@ -47,25 +73,34 @@ class StateTable(Generic[S]):
         """The id of a known ``state``.
 
         Raises:
-            KeyError: ``state`` is unknown.
+            UnknownStateError: ``state`` is unknown (a ``KeyError`` and a ``ValueError``).
         """
-        try:
-            return self._ids[state]
-        except KeyError:
-            raise KeyError(f"unknown state {state!r}") from None
+        index = self._ids.get(_check_hashable("state", state))
+        if index is None:
+            raise UnknownStateError(f"state is unknown: unknown state {state!r}")
+        return index
 
     def get(self, state: S, default: int = -1) -> int:
-        """The id of ``state``, or ``default`` if it is unknown."""
-        return self._ids.get(state, default)
+        """The id of ``state``, or ``default`` if it is unknown.
+
+        Raises:
+            ValueError: ``state`` is not hashable.
+        """
+        return self._ids.get(_check_hashable("state", state), default)
 
     def __getitem__(self, index: int) -> S:
-        """The state with id ``index`` (``IndexError`` if there is none)."""
-        if not 0 <= index < len(self._states):
-            raise IndexError(f"id {index} out of range [0, {len(self._states)})")
-        return self._states[index]
+        """The state with id ``index``.
+
+        Raises:
+            ValueError: ``index`` is not an int in ``[0, len(self))``.
+        """
+        return self._states[check_int("index", index, low=0, high=len(self._states))]
 
     def __contains__(self, state: object) -> bool:
-        return state in self._ids
+        try:
+            return state in self._ids
+        except TypeError:  # unhashable: never a key
+            return False
 
     def __len__(self) -> int:
         return len(self._states)
@@ -130,13 +165,37 @@ class ContactStateRegistry(StateTable[ContactState]):
         """Inverse of :meth:`to_json`.
 
         Raises:
-            ValueError: ``text`` is not a saved contact-state registry.
+            ValueError: ``text`` is not JSON or not a saved contact-state registry; the
+                message names the field at fault.
         """
-        data: Any = json.loads(text)
+        if not isinstance(text, (str, bytes, bytearray)):
+            raise ValueError(f"text must be a JSON str, got {type(text).__name__}")
+        try:
+            data: Any = json.loads(text)
+        except ValueError as error:  # JSONDecodeError and UnicodeDecodeError
+            raise ValueError(f"text is not valid JSON ({error})") from None
         if not isinstance(data, dict) or data.get("format") != _FORMAT:
             raise ValueError(f"text is not a {_FORMAT} JSON document")
-        states = [ContactState.from_json(s) for s in data["states"]]
-        return cls(FeatureGrid(**data["grid"]), states)
+        grid = check_field("text", data, "grid")
+        keys = ("dim", "radius", "angle")
+        if not isinstance(grid, dict) or sorted(grid) != sorted(keys):
+            raise ValueError(f"text field 'grid' must be an object with keys {keys}, got {grid!r}")
+        try:
+            feature_grid = FeatureGrid(**grid)
+        except ValueError as error:
+            raise ValueError(f"text field 'grid': {error}") from None
+        entries = check_field("text", data, "states")
+        if not isinstance(entries, list):
+            raise ValueError(f"text field 'states' must be a list, got {type(entries).__name__}")
+        states = []
+        for k, entry in enumerate(entries):
+            try:
+                states.append(ContactState.from_json(entry))
+            except ValueError as error:
+                raise ValueError(f"text field 'states'[{k}]: {error}") from None
+        if len(set(states)) != len(states):
+            raise ValueError("text field 'states' must hold distinct states")
+        return cls(feature_grid, states)
 
     def save(self, path: str | Path) -> None:
         """Write :meth:`to_json` to ``path``."""
@@ -144,5 +203,9 @@ class ContactStateRegistry(StateTable[ContactState]):
 
     @classmethod
     def load(cls, path: str | Path) -> ContactStateRegistry:
-        """Read a registry written by :meth:`save`."""
-        return cls.from_json(Path(path).read_text())
+        """Read a registry written by :meth:`save`.
+
+        Raises:
+            ValueError: ``path`` cannot be read, or see :meth:`from_json`.
+        """
+        return cls.from_json(read_text_file("path", path))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -10,7 +11,14 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcontact._checks import check_dim, check_dtype, check_float
+from torchcontact._checks import (
+    FLOAT_DTYPES,
+    check_dim,
+    check_dtype,
+    check_float,
+    check_instance,
+    check_real,
+)
 from torchcontact.states._contact_set import ContactSet
 from torchcontact.states._contact_state import ContactState
 from torchcontact.states._frames import check_pose, rotation_matrix
@@ -81,7 +89,8 @@ class TactileArray:
         for name, (low, high, closed) in bounds.items():
             value = getattr(self, name)
             if not isinstance(value, Tensor):
-                value = torch.full((S,), float(value), dtype=positions.dtype)
+                number = check_real(name, value)
+                value = torch.full((S,), number, dtype=positions.dtype)
             value = check_float(name, value, trailing=(S,), what=f"({S},) or a float")
             if value.shape != (S,) or value.dtype != positions.dtype:
                 raise ValueError(
@@ -93,8 +102,15 @@ class TactileArray:
                 interval = f"{'[' if closed else '('}{low}, {high}]"
                 raise ValueError(f"{name} must lie in {interval}, got {value.tolist()}")
             object.__setattr__(self, name, value.to(positions.device))
-        if not math.isfinite(self.min_impulse) or self.min_impulse < 0:
-            raise ValueError(f"min_impulse must be a finite number >= 0, got {self.min_impulse}")
+        impulse: object = self.min_impulse
+        if (
+            isinstance(impulse, bool)
+            or not isinstance(impulse, numbers.Real)
+            or not math.isfinite(impulse)
+            or impulse < 0
+        ):
+            raise ValueError(f"min_impulse must be a finite number >= 0, got {impulse!r}")
+        object.__setattr__(self, "min_impulse", float(impulse))
 
     @property
     def num_sensors(self) -> int:
@@ -133,6 +149,7 @@ class TactileArray:
         Raises:
             ValueError: the contacts' dimension or dtype differs from the array's.
         """
+        check_instance("contacts", contacts, ContactSet)
         if contacts.dim != self.dim or contacts.points.dtype != self.positions.dtype:
             raise ValueError(
                 f"contacts must have d = {self.dim} and dtype {self.positions.dtype}, "
@@ -163,8 +180,15 @@ class TactileArray:
         Raises:
             ValueError: the grid's dimension differs from the array's.
         """
+        check_instance("grid", grid, FeatureGrid)
+        if not isinstance(states, Sequence) or not all(
+            isinstance(state, ContactState) for state in states
+        ):
+            raise ValueError("states must be a sequence of ContactState objects")
         if grid.dim != self.dim:
             raise ValueError(f"grid.dim must equal the array's d = {self.dim}, got {grid.dim}")
+        if any(len(f.cell) != self.dim for state in states for f in state.features):
+            raise ValueError(f"states must have features of dimension d = {self.dim}")
         N, F, d = len(states), max([len(s.features) for s in states] + [1]), self.dim
         cells = torch.zeros((N, F, d), dtype=torch.long)
         directions = torch.zeros((N, F, d), dtype=torch.long)
@@ -205,6 +229,8 @@ class TactileArray:
             ``(*B, S)`` bool readings.
         """
         probability = self.reading_probability(triggers)
+        if generator is not None and not isinstance(generator, torch.Generator):
+            raise ValueError(f"generator must be a torch.Generator, got {type(generator).__name__}")
         uniform = torch.rand(
             probability.shape,
             generator=generator,
@@ -351,11 +377,18 @@ def rectangle_sensors(
     Returns:
         The planar :class:`TactileArray` with ``S = sum(counts)`` sensors.
     """
-    a, b = half_extents
-    if not (a > 0 and b > 0):
-        raise ValueError(f"half_extents must be positive, got {half_extents}")
-    if len(counts) != 4 or any(not isinstance(n, int) or n < 0 for n in counts):
-        raise ValueError(f"counts must be four ints >= 0, got {counts}")
+    if not isinstance(half_extents, (tuple, list)) or len(half_extents) != 2:
+        raise ValueError(f"half_extents must be a pair (a, b), got {half_extents!r}")
+    a = check_real("half_extents", half_extents[0], low=0.0, low_open=True)
+    b = check_real("half_extents", half_extents[1], low=0.0, low_open=True)
+    if (
+        not isinstance(counts, (tuple, list))
+        or len(counts) != 4
+        or any(isinstance(n, bool) or not isinstance(n, int) or n < 0 for n in counts)
+    ):
+        raise ValueError(f"counts must be four ints >= 0, got {counts!r}")
+    if dtype is not None and dtype not in FLOAT_DTYPES:
+        raise ValueError(f"dtype must be torch.float32 or torch.float64, got {dtype!r}")
     corners = [(-a, -b), (a, -b), (a, b), (-a, b)]
     outward = [(0.0, -1.0), (1.0, 0.0), (0.0, 1.0), (-1.0, 0.0)]
     positions, normals = [], []
