@@ -204,7 +204,7 @@ def test_unknown_states_and_bad_actions() -> None:
     assert _state(9) not in graph  # nothing was recorded
     with pytest.raises(ValueError, match=r"state_ids must lie in \[0, 4\)"):
         graph.sample_ids(torch.tensor([4]), torch.tensor([0]))
-    with pytest.raises(ValueError, match="num_actions: expected an int >= 1"):
+    with pytest.raises(ValueError, match="num_actions must be an int >= 1"):
         ManipulationGraph(0)
     with pytest.raises(ValueError, match="smoothing must be a finite number >= 0"):
         ManipulationGraph(2, smoothing=-1.0)
