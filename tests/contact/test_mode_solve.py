@@ -75,10 +75,13 @@ def test_batched_equals_looped_and_float32_matches_float64() -> None:
     )
     mode = solve(problem, "lemke").mode
     batched = solve_mode(problem, mode)
+    # A batch and a single problem may take different LAPACK kernels. The velocity is unique
+    # (to ~100 ulps here); the normal impulses of a resting box's redundant corners are split
+    # by the regularised second pass, which converges to ~1e-10 relative, not to the ulp.
     for index in range(16):
         single = solve_mode(problem[index], mode[index])
-        torch.testing.assert_close(single.v_next, batched.v_next[index], atol=1e-14, rtol=0)
-        torch.testing.assert_close(single.pn, batched.pn[index], atol=1e-14, rtol=0)
+        torch.testing.assert_close(single.v_next, batched.v_next[index], atol=1e-14, rtol=1e-13)
+        torch.testing.assert_close(single.pn, batched.pn[index], atol=1e-12, rtol=1e-9)
     as_float = solve_mode(problem.to(torch.float32), mode)
     assert as_float.v_next.dtype == torch.float32
     torch.testing.assert_close(as_float.v_next.double(), batched.v_next, atol=1e-5, rtol=0)
