@@ -102,13 +102,91 @@ def lcp_residual(problem: ContactProblem, *, v_next: Tensor, pn: Tensor, pt: Ten
     return per_slot.amax(dim=-1) if per_slot.shape[-1] else per_slot.sum(dim=-1)
 
 
-def _scales(problem: ContactProblem, pn: Tensor) -> tuple[Tensor, Tensor]:
-    """Velocity and impulse scales ``(*B, 1)`` that turn absolute tolerances into relative ones."""
-    velocity = torch.cat(
-        [problem.v_free().abs(), (problem.phi / problem.h).abs(), problem.b_normal.abs()], dim=-1
+def problem_scales(
+    problem: ContactProblem, *, v_next: Tensor, pn: Tensor, pt: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Velocity and impulse scales ``(*B, 1)`` of a candidate solution, for relative tests.
+
+    Both follow the problem's own units, so a test against them is invariant under a change
+    of units of time, mass or length (``h``, ``M``, ``v`` scaled together or apart):
+
+    * velocity: the largest constraint velocity the step starts from or the impulses cause
+      over the real slots, ``|J v_free|``, ``|b|``, ``|J (v⁺ − v_free)|``, and the
+      penetration-recovery rate ``−φ/h`` of penetrating slots (a positive ``φ/h``, a slot far
+      away, sets no scale for the others);
+    * impulse: the largest generalized momentum ``|M v|``, ``|h f|``, ``|Jᵀ p|``, or impulse.
+
+    Both are floored at the dtype's ``tiny`` (a problem at rest with no force has scale 0).
+    """
+    tiny = torch.finfo(problem.dtype).tiny
+    L = torch.linalg.cholesky(problem.M)
+    v_free = problem.v + problem.h * torch.cholesky_solve(problem.f.unsqueeze(-1), L).squeeze(-1)
+    mask = problem.slot_mask
+    gap_free, slip_free = velocity_terms(problem, v_free)
+    recovery = (-problem.phi / problem.h).clamp(min=0.0)
+    normal_free = gap_free - problem.phi / problem.h  # Jn v_free + bn
+    change_n = (problem.Jn @ (v_next - v_free).unsqueeze(-1)).squeeze(-1)
+    change_t = (problem.Jt @ (v_next - v_free).unsqueeze(-1).unsqueeze(-3)).squeeze(-1)
+    per_slot = torch.stack(
+        [
+            normal_free.abs(),
+            problem.b_normal.abs(),
+            recovery,
+            change_n.abs(),
+            slip_free.abs().amax(dim=-1),
+            problem.b_tangent.abs().amax(dim=-1),
+            change_t.abs().amax(dim=-1),
+        ],
+        dim=-1,
+    ).amax(dim=-1)
+    per_slot = torch.where(mask, per_slot, torch.zeros((), dtype=per_slot.dtype))
+    velocity = per_slot.amax(dim=-1, keepdim=True) if per_slot.shape[-1] else per_slot.sum(-1, True)
+    generalized = (problem.Jn.transpose(-1, -2) @ pn.unsqueeze(-1)).squeeze(-1) + (
+        problem.Jt.flatten(-3, -2).transpose(-1, -2) @ pt.flatten(-2).unsqueeze(-1)
+    ).squeeze(-1)
+    momentum = (problem.M @ problem.v.unsqueeze(-1)).squeeze(-1).abs()
+    impulse = torch.cat(
+        [
+            momentum,
+            (problem.h * problem.f).abs(),
+            generalized.abs(),
+            pn.abs(),
+            pt.flatten(-2).abs(),
+        ],
+        dim=-1,
     ).amax(dim=-1, keepdim=True)
-    impulse = pn.abs().amax(dim=-1, keepdim=True) if pn.shape[-1] else pn.sum(-1, keepdim=True)
-    return 1.0 + velocity, 1.0 + impulse
+    return velocity.clamp(min=tiny), impulse.clamp(min=tiny)
+
+
+def relative_residual(problem: ContactProblem, *, v_next: Tensor, pn: Tensor, pt: Tensor) -> Tensor:
+    """Scale-invariant natural-map residual of the Stewart–Trinkle LCP.
+
+    :func:`lcp_residual` with every impulse divided by the impulse scale and every velocity by
+    the velocity scale of :func:`problem_scales`: the same number whatever the units of time,
+    mass and length, so one tolerance decides convergence at every scale of ``h``, ``M`` and
+    ``v``. Padding slots contribute their impulses relative to the impulse scale.
+
+    Args:
+        problem: the contact problem.
+        v_next: ``(*B, n)`` end-of-step velocity, assumed to satisfy the Newton–Euler row.
+        pn: ``(*B, K)`` normal impulses.
+        pt: ``(*B, K, D)`` friction impulses.
+
+    Returns:
+        ``(*B,)`` relative residual, zero exactly at a solution.
+    """
+    velocity_scale, impulse_scale = problem_scales(problem, v_next=v_next, pn=pn, pt=pt)
+    gap_rate, slip = velocity_terms(problem, v_next)
+    gap_rate, slip = gap_rate / velocity_scale, slip / velocity_scale.unsqueeze(-1)
+    pn, pt = pn / impulse_scale, pt / impulse_scale.unsqueeze(-1)
+    sigma = (-slip.amin(dim=-1)).clamp(min=0.0) if slip.shape[-2] else slip.sum(-1)
+    normal = torch.minimum(pn, gap_rate).abs()
+    friction = torch.minimum(pt, slip + sigma.unsqueeze(-1)).abs().amax(dim=-1)
+    cone = torch.minimum(sigma, problem.mu * pn - pt.sum(dim=-1)).abs()
+    per_slot = torch.maximum(torch.maximum(normal, friction), cone)
+    padding = torch.maximum(pn.abs(), pt.abs().amax(dim=-1))
+    per_slot = torch.where(problem.slot_mask, per_slot, padding)
+    return per_slot.amax(dim=-1) if per_slot.shape[-1] else per_slot.sum(dim=-1)
 
 
 def contact_mode(
@@ -116,6 +194,7 @@ def contact_mode(
     *,
     v_next: Tensor,
     pn: Tensor,
+    pt: Tensor | None = None,
     atol: float | None = None,
 ) -> Tensor:
     """Read the contact mode of each slot off a solution.
@@ -128,13 +207,16 @@ def contact_mode(
         problem: the contact problem.
         v_next: ``(*B, n)`` end-of-step velocity.
         pn: ``(*B, K)`` normal impulses.
+        pt: ``(*B, K, D)`` friction impulses (their size enters the impulse scale of
+            :func:`problem_scales`); default zeros.
         atol: relative tolerance; default :func:`default_tolerance` of the dtype times 10.
 
     Returns:
         ``(*B, K)`` long modes (0 separated, 1 sticking, ``2 + d`` sliding along ``d``).
     """
     tol = 10 * default_tolerance(problem.dtype) if atol is None else atol
-    velocity_scale, impulse_scale = _scales(problem, pn)
+    pt = torch.zeros_like(problem.b_tangent) if pt is None else pt
+    velocity_scale, impulse_scale = problem_scales(problem, v_next=v_next, pn=pn, pt=pt)
     _, slip = velocity_terms(problem, v_next)
     active = problem.slot_mask & (pn > tol * impulse_scale)
     sticking = slip.abs().amax(dim=-1) <= tol * velocity_scale
@@ -165,7 +247,7 @@ def is_consistent(
     """
     v_next, pn, pt, mode = solution.v_next, solution.pn, solution.pt, solution.mode
     tol = 10 * default_tolerance(problem.dtype) if atol is None else atol
-    velocity_scale, impulse_scale = _scales(problem, pn)
+    velocity_scale, impulse_scale = problem_scales(problem, v_next=v_next, pn=pn, pt=pt)
     v_tol, p_tol = tol * velocity_scale, tol * impulse_scale
     p_tol_d = p_tol.unsqueeze(-1)
     gap_rate, slip = velocity_terms(problem, v_next)

@@ -159,7 +159,9 @@ def solve_mode(
     pt = torch.where(sticking.unsqueeze(-1), pt_stick, pt_slide)
 
     equality_error = ((A @ x.unsqueeze(-1)).squeeze(-1) - b).abs().amax(dim=-1)
-    scale = 1.0 + b.abs().amax(dim=-1) + (A.abs().amax(dim=(-1, -2)) * x.abs().amax(dim=-1))
+    # Relative to the system's own terms: the same test at every scale of h, M and v.
+    scale = b.abs().amax(dim=-1) + A.abs().amax(dim=(-1, -2)) * x.abs().amax(dim=-1)
+    scale = scale.clamp(min=torch.finfo(problem.dtype).tiny)
     finite = torch.isfinite(v_next).all(dim=-1) & torch.isfinite(pt).all(dim=(-1, -2))
     tolerance = default_tolerance(problem.dtype)
     converged = finite & (equality_error <= tolerance * scale)

@@ -272,7 +272,9 @@ class Simulator:
             pending = pending[~converged]
         # Report canonical modes: a slot that slides at zero slip, or carries no impulse in an
         # active mode, is labelled as the solution shows it (sticking, separated).
-        canonical = contact_mode(flat, v_next=solution.v_next.detach(), pn=solution.pn.detach())
+        canonical = contact_mode(
+            flat, v_next=solution.v_next.detach(), pn=solution.pn.detach(), pt=solution.pt.detach()
+        )
         merged = replace(solution, mode=canonical)
         return merged.map_tensors(lambda t: t.reshape((*batch, *t.shape[1:]))), solver.reshape(
             batch
