@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchcontact._checks import check_positive, check_tensor, describe
 from torchcontact.contact._problem import ContactProblem
 from torchcontact.contact._solution import Solution
 
@@ -179,7 +180,7 @@ def relative_residual(problem: ContactProblem, *, v_next: Tensor, pn: Tensor, pt
     gap_rate, slip = velocity_terms(problem, v_next)
     gap_rate, slip = gap_rate / velocity_scale, slip / velocity_scale.unsqueeze(-1)
     pn, pt = pn / impulse_scale, pt / impulse_scale.unsqueeze(-1)
-    sigma = (-slip.amin(dim=-1)).clamp(min=0.0) if slip.shape[-2] else slip.sum(-1)
+    sigma = (-slip.amin(dim=-1)).clamp(min=0.0)
     normal = torch.minimum(pn, gap_rate).abs()
     friction = torch.minimum(pt, slip + sigma.unsqueeze(-1)).abs().amax(dim=-1)
     cone = torch.minimum(sigma, problem.mu * pn - pt.sum(dim=-1)).abs()
@@ -244,9 +245,13 @@ def is_consistent(
 
     Returns:
         ``(*B,)`` bool, ``True`` where the solution is consistent with its modes.
+
+    Raises:
+        ValueError: ``problem`` or ``solution`` is not one, or their shapes or dtypes differ.
     """
+    check_solution(problem, solution)
     v_next, pn, pt, mode = solution.v_next, solution.pn, solution.pt, solution.mode
-    tol = 10 * default_tolerance(problem.dtype) if atol is None else atol
+    tol = 10 * default_tolerance(problem.dtype) if atol is None else check_positive("atol", atol)
     velocity_scale, impulse_scale = problem_scales(problem, v_next=v_next, pn=pn, pt=pt)
     v_tol, p_tol = tol * velocity_scale, tol * impulse_scale
     p_tol_d = p_tol.unsqueeze(-1)
@@ -272,3 +277,31 @@ def is_consistent(
     )
     per_slot = torch.where(problem.slot_mask, per_slot & nonnegative, no_impulse)
     return per_slot.all(dim=-1)
+
+
+def check_solution(problem: object, solution: object) -> None:
+    """Check that ``solution`` is a :class:`Solution` shaped like ``problem``'s.
+
+    Raises:
+        ValueError: naming ``problem`` or ``solution`` (and the field at fault).
+    """
+    if not isinstance(problem, ContactProblem):
+        raise ValueError(f"problem must be a ContactProblem, got {type(problem).__name__}")
+    if not isinstance(solution, Solution):
+        raise ValueError(f"solution must be a Solution, got {type(solution).__name__}")
+    batch, K, D = problem.batch_shape, problem.num_slots, problem.num_directions
+    for name, event in (("v_next", (problem.num_dofs,)), ("pn", (K,)), ("pt", (K, D))):
+        value = check_tensor(
+            f"solution.{name}", getattr(solution, name), event_shape=event, like=problem.M
+        )
+        if value.shape[: value.dim() - len(event)] != batch:
+            raise ValueError(
+                f"solution.{name}: expected batch shape {tuple(batch)}, got {tuple(value.shape)}"
+            )
+    mode = solution.mode
+    if not isinstance(mode, Tensor) or mode.dtype != torch.long or mode.shape != (*batch, K):
+        raise ValueError(
+            f"solution.mode must be a long tensor of shape {(*batch, K)}, got {describe(mode)}"
+        )
+    if mode.numel() and (int(mode.min()) < 0 or int(mode.max()) >= SLIDING + D):
+        raise ValueError(f"solution.mode values must lie in [0, {SLIDING + D})")

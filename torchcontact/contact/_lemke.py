@@ -9,6 +9,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
+from torchcontact._checks import check_int
 from torchcontact.contact._lcp import default_tolerance
 from torchcontact.contact._per_problem import solve_one_by_one
 from torchcontact.contact._problem import ContactProblem
@@ -177,6 +178,9 @@ def solve_lemke(problem: ContactProblem, *, max_pivots: int | None = None) -> So
         the pivot limit, or where the result's scale-invariant residual
         (:func:`~torchcontact.contact.relative_residual`) exceeds the float64 tolerance.
     """
+
+    if max_pivots is not None:
+        check_int("max_pivots", max_pivots, low=1)
 
     def solve_one(
         W: FloatArray, q: FloatArray, mu: FloatArray, D: int

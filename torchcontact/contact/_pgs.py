@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchcontact._checks import check_int, check_positive
 from torchcontact.contact._lcp import (
     contact_mode,
     default_tolerance,
@@ -55,9 +56,9 @@ def solve_pgs(
         K. Erleben, "Velocity-based shock propagation for multibody dynamics animation",
         ACM TOG 26(2), 2007.
     """
-    if max_sweeps < 1 or check_every < 1:
-        raise ValueError("max_sweeps and check_every must be >= 1")
-    tolerance = default_tolerance(problem.dtype) if tol is None else tol
+    check_int("max_sweeps", max_sweeps, low=1)
+    check_int("check_every", check_every, low=1)
+    tolerance = default_tolerance(problem.dtype) if tol is None else check_positive("tol", tol)
     K, D = problem.num_slots, problem.num_directions
     with torch.no_grad():
         W, Minv_JT = delassus(problem)
@@ -69,7 +70,7 @@ def solve_pgs(
         diag = W.diagonal(dim1=-2, dim2=-1)
         W_nn = diag[..., :K].clamp(min=torch.finfo(problem.dtype).tiny)
         W_tt = W[..., K:, K:].unflatten(-2, (K, D)).unflatten(-1, (K, D))
-        block = torch.stack([W_tt[..., k, :, k, :] for k in range(K)], dim=-3)
+        block = W_tt.diagonal(dim1=-4, dim2=-2).movedim(-1, -3)  # (*B, K, D, D)
         lipschitz = block.abs().sum(dim=-1).amax(dim=-1).clamp(min=torch.finfo(problem.dtype).tiny)
         Minv_Jn = Minv_JT[..., :K]
         Minv_Jt = Minv_JT[..., K:].unflatten(-1, (K, D))
