@@ -10,6 +10,7 @@ impulses cause. A solver that reports ``converged`` must pass it whatever the un
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -168,3 +169,166 @@ def test_converged_answers_solve_the_lcp_at_every_scale(
     assert not violations, violations
     # The exact solution agrees with its own modes at every scale, too.
     assert method != "lemke" or bool(is_consistent(problem, solution))
+
+
+# --- bad inputs: a ValueError naming the argument, never another exception ----------------
+
+_FIELDS = ("M", "v", "f", "Jn", "Jt", "phi", "mu", "bn", "bt")
+
+
+def _spoil(value: torch.Tensor, how: str) -> Any:
+    """A damaged copy of a field: wrong dtype, NaN/inf, wrong shape, or not a tensor."""
+    if how == "nan":
+        return value.flatten().index_fill(0, torch.tensor([0]), math.nan).reshape(value.shape)
+    if how == "inf":
+        return value.flatten().index_fill(0, torch.tensor([0]), math.inf).reshape(value.shape)
+    if how == "shape":
+        return value[..., :-1] if value.shape[-1] > 1 else value.unsqueeze(-1).repeat(1, 2)
+    if how == "list":
+        return value.tolist()
+    return value.to(
+        {
+            "int": torch.long,
+            "half": torch.float16,
+            "complex": torch.complex128,
+            "f32": torch.float32,
+        }[how]
+    )
+
+
+@FUZZ
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    field=st.sampled_from(_FIELDS),
+    how=st.sampled_from(["nan", "inf", "shape", "list", "int", "half", "complex", "f32"]),
+)
+def test_contact_problem_names_a_bad_field(seed: int, field: str, how: str) -> None:
+    data = _box_data(seed, log_h=-2.0, log_mass=0.0, log_speed=0.0, slots=2)
+    fields = {k: torch.tensor(v, dtype=torch.float64) for k, v in data.items() if k in _FIELDS}
+    if how == "shape" and fields[field].dim() == 1 and fields[field].shape[0] == 2:
+        fields[field] = fields[field][:1]  # (K,) fields: a wrong K
+    else:
+        fields[field] = _spoil(fields[field], how)
+    with pytest.raises(ValueError, match=rf"^{field}\b"):
+        ContactProblem(h=data["h"], mask=torch.tensor(data["mask"]), **fields)
+
+
+@FUZZ
+@given(
+    h=st.one_of(st.floats(max_value=0.0), st.sampled_from([math.nan, math.inf, True, "0.1"])),
+    mass=st.floats(-1e6, 0.0),
+    mu=st.floats(-1.0, -1e-12),
+)
+def test_negative_physical_parameters_are_named(h: Any, mass: float, mu: float) -> None:
+    data = _box_data(0, log_h=-2.0, log_mass=0.0, log_speed=0.0, slots=2)
+    with pytest.raises(ValueError, match=r"^h "):
+        _problem(data | {"h": h})
+    with pytest.raises(ValueError, match=r"^M "):  # not positive definite
+        _problem(data | {"M": np.diag([mass, 1.0, 1.0])})
+    with pytest.raises(ValueError, match=r"^mu "):
+        _problem(data | {"mu": np.array([mu, 0.5])})
+    with pytest.raises(ValueError, match=r"^M "):  # not symmetric
+        _problem(data | {"M": np.array([[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])})
+
+
+@FUZZ
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    bad=st.one_of(
+        st.integers(-5, -1),
+        st.integers(4, 9),
+    ),
+    shape=st.sampled_from(["ok", "short", "float", "bool"]),
+)
+def test_solve_mode_and_is_consistent_name_bad_modes(seed: int, bad: int, shape: str) -> None:
+    problem = _problem(_box_data(seed, log_h=-2.0, log_mass=0.0, log_speed=0.0, slots=2))
+    mode = torch.full((2,), bad)
+    if shape == "short":
+        mode = torch.zeros(3, dtype=torch.long)
+    elif shape == "float":
+        mode = mode.double()
+    elif shape == "bool":
+        mode = mode > 0
+    with pytest.raises(ValueError, match=r"^mode"):
+        solve_mode(problem, mode)
+    good = solve(problem, "lemke")
+    with pytest.raises(ValueError, match=r"^solution.mode"):
+        is_consistent(problem, replace(good, mode=mode))
+    with pytest.raises(ValueError, match=r"^solution.pn"):
+        is_consistent(problem, replace(good, pn=good.pn.float()))
+    with pytest.raises(ValueError, match=r"^solution "):
+        is_consistent(problem, good.pn)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("method", ["lemke", "pgs", "qp"])
+@pytest.mark.parametrize("batch", [(0,), (3,), (2, 0)])
+@pytest.mark.parametrize("slots", [0, 2])
+def test_empty_batches_and_no_slots_give_free_motion(
+    method: str, batch: tuple[int, ...], slots: int
+) -> None:
+    """K = 0 is free motion, v⁺ = v + h M⁻¹ f (closed form); empty batches, empty results."""
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(3, 3))
+    M = A @ A.T + 3.0 * np.eye(3)
+    v, f, h = rng.normal(size=3), rng.normal(size=3), 0.05
+
+    def t(x: np.ndarray) -> torch.Tensor:
+        return torch.tensor(x, dtype=torch.float64)
+
+    K = 0 if slots == 0 else slots
+    problem = ContactProblem(
+        M=t(M).expand(*batch, 3, 3),
+        v=t(v).expand(*batch, 3),
+        f=t(f),
+        Jn=torch.zeros(K, 3, dtype=torch.float64),
+        Jt=torch.zeros(K, 2, 3, dtype=torch.float64),
+        phi=torch.ones(K, dtype=torch.float64),
+        mu=torch.zeros(K, dtype=torch.float64),
+        h=h,
+    )
+    solution = solve(problem, method)  # type: ignore[arg-type]
+    assert solution.v_next.shape == (*batch, 3)
+    assert solution.pn.shape == (*batch, K)
+    assert solution.pt.shape == (*batch, K, 2)
+    assert solution.status.converged.shape == batch
+    assert bool(solution.status.converged.all())
+    expected = v + h * np.linalg.solve(M, f)
+    np.testing.assert_allclose(
+        solution.v_next.reshape(-1, 3).numpy(),
+        np.broadcast_to(expected, (math.prod(batch), 3)),
+        rtol=1e-12,
+        atol=1e-12,
+    )
+    again = solve_mode(problem, torch.zeros(*batch, K, dtype=torch.long))
+    assert again.v_next.shape == (*batch, 3)
+    assert is_consistent(problem, solution).shape == batch
+
+
+def test_planar_box_problem_batch_zero_and_bad_arguments() -> None:
+    empty = torch.zeros(0, 3, dtype=torch.float64)
+    assert planar_box_problem(q=empty, v=empty).batch_shape == (0,)
+    q = torch.zeros(1, 3, dtype=torch.float64)
+    for kwargs, name in (
+        ({"q": q.half(), "v": q}, "q"),
+        ({"q": q, "v": q.float()}, "v"),
+        ({"q": q, "v": q, "mass": -1.0}, "mass"),
+        ({"q": q, "v": q, "mu": -0.1}, "mu"),
+        ({"q": q, "v": q, "h": 0.0}, "h"),
+        ({"q": q, "v": q, "corners": (0, 7)}, r"corners\[1\]"),
+    ):
+        with pytest.raises(ValueError, match=rf"^{name}"):
+            planar_box_problem(**kwargs)  # type: ignore[arg-type]
+
+
+def test_solver_options_are_checked() -> None:
+    problem = _problem(_box_data(0, log_h=-2.0, log_mass=0.0, log_speed=0.0, slots=2))
+    for method, options, name in (
+        ("lemke", {"max_pivots": 0}, "max_pivots"),
+        ("pgs", {"max_sweeps": 0}, "max_sweeps"),
+        ("pgs", {"tol": -1.0}, "tol"),
+        ("qp", {"max_rounds": 1.5}, "max_rounds"),
+        ("lemke", {"max_sweeps": 3}, "options"),
+        ("newton", {}, "method"),
+    ):
+        with pytest.raises(ValueError, match=rf"^{name}"):
+            solve(problem, method, **options)  # type: ignore[arg-type]

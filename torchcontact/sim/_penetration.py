@@ -105,4 +105,4 @@ def penetration(scene: Scene, *, q: Tensor, q_kinematic: Tensor) -> tuple[Tensor
             )
     phi = torch.where(penetrating, phi, 0.0)
     Jn = Jn * penetrating[..., None]
-    return phi.view(*batch, K), Jn.view(*batch, K, -1), penetrating.view(*batch, K)
+    return phi.view(*batch, K), Jn.view(*batch, K, 3 * num_dynamic), penetrating.view(*batch, K)
