@@ -194,3 +194,34 @@ def test_free_fall_of_one_step_matches_closed_form() -> None:
     expected_v = v + SCENE.h * torch.tensor([0.0, -9.81, 0.0], dtype=torch.float64)
     torch.testing.assert_close(result.state.v, expected_v, rtol=0, atol=1e-12)
     torch.testing.assert_close(result.state.q, q + SCENE.h * expected_v, rtol=0, atol=1e-12)
+
+
+@FUZZ
+@given(
+    bad=st.one_of(
+        st.floats(max_value=0.0), st.sampled_from([math.nan, math.inf, -math.inf, "1", None])
+    )
+)
+def test_shape_constructors_name_a_bad_size(bad: Any) -> None:
+    for build, name in (
+        (lambda: Polygon.box(bad, 1.0), "width"),
+        (lambda: Polygon.box(1.0, bad), "height"),
+        (lambda: Polygon.triangle(bad, 1.0), "base"),
+        (lambda: Polygon.regular(5, bad), "radius"),
+        (lambda: Polygon.regular(bad, 1.0), "sides"),
+    ):
+        with pytest.raises(ValueError, match=rf"^{name} "):
+            build()
+    if not isinstance(bad, float) or not math.isfinite(bad):
+        with pytest.raises(ValueError, match=r"^angle "):
+            HalfPlane.ground(angle=bad)
+
+
+@pytest.mark.parametrize("how", ["nan", "int", "half", "complex", "list", "shape"])
+def test_polygon_and_halfplane_name_bad_tensors(how: str) -> None:
+    square = Polygon.box(1.0, 1.0).vertices
+    point = torch.zeros(2, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^vertices "):
+        Polygon(square.T.contiguous() if how == "shape" else _spoil(square, how))
+    with pytest.raises(ValueError, match=r"^point "):
+        HalfPlane(torch.zeros(3) if how == "shape" else _spoil(point, how), point + 1.0)
