@@ -104,7 +104,12 @@ def lcp_residual(problem: ContactProblem, *, v_next: Tensor, pn: Tensor, pt: Ten
 
 
 def problem_scales(
-    problem: ContactProblem, *, v_next: Tensor, pn: Tensor, pt: Tensor
+    problem: ContactProblem,
+    *,
+    v_next: Tensor,
+    pn: Tensor,
+    pt: Tensor,
+    v_free: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Velocity and impulse scales ``(*B, 1)`` of a candidate solution, for relative tests.
 
@@ -115,42 +120,31 @@ def problem_scales(
       over the real slots, ``|J v_free|``, ``|b|``, ``|J (v⁺ − v_free)|``, and the
       penetration-recovery rate ``−φ/h`` of penetrating slots (a positive ``φ/h``, a slot far
       away, sets no scale for the others);
-    * impulse: the largest generalized momentum ``|M v|``, ``|h f|``, ``|Jᵀ p|``, or impulse.
+    * impulse: the largest generalized momentum ``|M v|``, ``|h f|``, ``|M (v⁺ − v_free)|``
+      (``= |Jᵀ p|``), or impulse.
 
     Both are floored at the dtype's ``tiny`` (a problem at rest with no force has scale 0).
+    ``v_free`` (``(*B, n)``, :meth:`ContactProblem.v_free`) is computed when not given.
     """
     tiny = torch.finfo(problem.dtype).tiny
-    L = torch.linalg.cholesky(problem.M)
-    v_free = problem.v + problem.h * torch.cholesky_solve(problem.f.unsqueeze(-1), L).squeeze(-1)
-    mask = problem.slot_mask
-    gap_free, slip_free = velocity_terms(problem, v_free)
-    recovery = (-problem.phi / problem.h).clamp(min=0.0)
-    normal_free = gap_free - problem.phi / problem.h  # Jn v_free + bn
-    change_n = (problem.Jn @ (v_next - v_free).unsqueeze(-1)).squeeze(-1)
-    change_t = (problem.Jt @ (v_next - v_free).unsqueeze(-1).unsqueeze(-3)).squeeze(-1)
-    per_slot = torch.stack(
-        [
-            normal_free.abs(),
-            problem.b_normal.abs(),
-            recovery,
-            change_n.abs(),
-            slip_free.abs().amax(dim=-1),
-            problem.b_tangent.abs().amax(dim=-1),
-            change_t.abs().amax(dim=-1),
-        ],
-        dim=-1,
-    ).amax(dim=-1)
-    per_slot = torch.where(mask, per_slot, torch.zeros((), dtype=per_slot.dtype))
-    velocity = per_slot.amax(dim=-1, keepdim=True) if per_slot.shape[-1] else per_slot.sum(-1, True)
-    generalized = (problem.Jn.transpose(-1, -2) @ pn.unsqueeze(-1)).squeeze(-1) + (
-        problem.Jt.flatten(-3, -2).transpose(-1, -2) @ pt.flatten(-2).unsqueeze(-1)
-    ).squeeze(-1)
-    momentum = (problem.M @ problem.v.unsqueeze(-1)).squeeze(-1).abs()
+    v_free = problem.v_free() if v_free is None else v_free
+    K, D = problem.num_slots, problem.num_directions
+    # [v_free, v⁺ − v_free] as two columns: one product per row block gives both terms.
+    columns = torch.stack([v_free, v_next - v_free], dim=-1)  # (*B, n, 2)
+    normal = (problem.Jn @ columns).abs().amax(dim=-1)
+    tangent = (problem.Jt.flatten(-3, -2) @ columns).abs().amax(dim=-1)
+    known = torch.maximum(problem.b_normal.abs(), problem.b_tangent.abs().amax(dim=-1))
+    per_slot = torch.maximum(normal, tangent.unflatten(-1, (K, D)).amax(dim=-1))
+    per_slot = torch.maximum(per_slot, known)
+    per_slot = torch.maximum(per_slot, (-problem.phi / problem.h).clamp(min=0.0))
+    per_slot = torch.where(problem.slot_mask, per_slot, torch.zeros((), dtype=per_slot.dtype))
+    velocity = torch.nn.functional.pad(per_slot, (0, 1)).amax(dim=-1, keepdim=True)
+    # |M v| and |M (v⁺ − v_free)| (= |Jᵀ p| by the Newton–Euler row) in one product.
+    momenta = problem.M @ torch.stack([problem.v, columns[..., 1]], dim=-1)  # (*B, n, 2)
     impulse = torch.cat(
         [
-            momentum,
+            momenta.abs().flatten(-2),
             (problem.h * problem.f).abs(),
-            generalized.abs(),
             pn.abs(),
             pt.flatten(-2).abs(),
         ],
@@ -159,7 +153,14 @@ def problem_scales(
     return velocity.clamp(min=tiny), impulse.clamp(min=tiny)
 
 
-def relative_residual(problem: ContactProblem, *, v_next: Tensor, pn: Tensor, pt: Tensor) -> Tensor:
+def relative_residual(
+    problem: ContactProblem,
+    *,
+    v_next: Tensor,
+    pn: Tensor,
+    pt: Tensor,
+    v_free: Tensor | None = None,
+) -> Tensor:
     """Scale-invariant natural-map residual of the Stewart–Trinkle LCP.
 
     :func:`lcp_residual` with every impulse divided by the impulse scale and every velocity by
@@ -172,11 +173,14 @@ def relative_residual(problem: ContactProblem, *, v_next: Tensor, pn: Tensor, pt
         v_next: ``(*B, n)`` end-of-step velocity, assumed to satisfy the Newton–Euler row.
         pn: ``(*B, K)`` normal impulses.
         pt: ``(*B, K, D)`` friction impulses.
+        v_free: ``(*B, n)`` the contact-free velocity if the caller has it (else computed).
 
     Returns:
         ``(*B,)`` relative residual, zero exactly at a solution.
     """
-    velocity_scale, impulse_scale = problem_scales(problem, v_next=v_next, pn=pn, pt=pt)
+    velocity_scale, impulse_scale = problem_scales(
+        problem, v_next=v_next, pn=pn, pt=pt, v_free=v_free
+    )
     gap_rate, slip = velocity_terms(problem, v_next)
     gap_rate, slip = gap_rate / velocity_scale, slip / velocity_scale.unsqueeze(-1)
     pn, pt = pn / impulse_scale, pt / impulse_scale.unsqueeze(-1)

@@ -76,7 +76,7 @@ def solve_one_by_one(
     v_next = v_free + (Minv_JT @ p_all.unsqueeze(-1)).squeeze(-1)
     pn, pt = p_all[:, :K], p_all[:, K:].unflatten(-1, (K, D))
     residual = lcp_residual(flat, v_next=v_next, pn=pn, pt=pt)
-    relative = relative_residual(flat, v_next=v_next, pn=pn, pt=pt)
+    relative = relative_residual(flat, v_next=v_next, pn=pn, pt=pt, v_free=v_free)
     converged = torch.from_numpy(succeeded) & (relative <= tolerance)
     status = SolveStatus(
         converged=converged, residual=residual, iterations=torch.from_numpy(iterations)

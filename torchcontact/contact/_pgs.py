@@ -94,12 +94,16 @@ def solve_pgs(
             sweeps += 1
             if sweeps % check_every == 0 or sweeps == max_sweeps:
                 v = v_free + (Minv_JT @ torch.cat([pn, pt.flatten(-2)], -1).unsqueeze(-1))[..., 0]
-                converged = relative_residual(problem, v_next=v, pn=pn, pt=pt) <= tolerance
+                converged = (
+                    relative_residual(problem, v_next=v, pn=pn, pt=pt, v_free=v_free) <= tolerance
+                )
                 if bool(converged.all()):
                     break
         v_next = v_free + (Minv_JT @ torch.cat([pn, pt.flatten(-2)], -1).unsqueeze(-1))[..., 0]
         residual = lcp_residual(problem, v_next=v_next, pn=pn, pt=pt)
-        converged = relative_residual(problem, v_next=v_next, pn=pn, pt=pt) <= tolerance
+        converged = (
+            relative_residual(problem, v_next=v_next, pn=pn, pt=pt, v_free=v_free) <= tolerance
+        )
         mode = contact_mode(problem, v_next=v_next, pn=pn, pt=pt, atol=max(10 * tolerance, 1e-7))
     iterations = torch.full(problem.batch_shape, sweeps, dtype=torch.long, device=problem.device)
     status = SolveStatus(converged=converged, residual=residual, iterations=iterations)
