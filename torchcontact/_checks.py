@@ -367,3 +367,28 @@ def check_instance(name: str, value: object, kind: type) -> None:
     """
     if not isinstance(value, kind):
         raise ValueError(f"{name} must be a {kind.__name__}, got {type(value).__name__}")
+
+
+def check_batched(
+    name: str, value: object, *, shape: Sequence[int], like: Tensor, like_name: str
+) -> Tensor:
+    """Check that ``value`` is a finite float tensor of exactly ``shape``, dtype/device of ``like``.
+
+    Args:
+        name: the argument's name, used in the error message.
+        value: the object to check.
+        shape: the full required shape (batch dimensions included).
+        like: reference tensor giving dtype and device.
+        like_name: the reference's argument name, for the message.
+
+    Raises:
+        ValueError: ``value`` is not a float32/float64 tensor of that shape, dtype and device,
+            or holds NaN or inf.
+    """
+    tensor = check_float(name, value)
+    check_like(name, tensor, reference_name=like_name, reference=like)
+    if tuple(tensor.shape) != tuple(shape):
+        raise ValueError(f"{name} must have shape {tuple(shape)}, got {tuple(tensor.shape)}")
+    if tensor.numel() and not all_finite(tensor):
+        raise ValueError(f"{name} contains NaN or inf")
+    return tensor

@@ -15,6 +15,7 @@ from torchcontact.contact._lcp import (
     delassus,
     is_consistent,
     lcp_residual,
+    relative_residual,
 )
 from torchcontact.contact._lemke import LemkeOutcome, LemkeResult, lemke, solve_lemke
 from torchcontact.contact._mode_solve import solve_mode
@@ -42,6 +43,7 @@ __all__ = [
     "lemke",
     "planar_box_problem",
     "project_capped_simplex",
+    "relative_residual",
     "solve",
     "solve_active_set",
     "solve_lemke",

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchcontact._checks import check_float, check_int, check_like, check_positive, check_real
 from torchcontact.contact._problem import ContactProblem
 
 #: Corner signs of a box in its body frame, counter-clockwise from bottom-left.
@@ -45,9 +46,36 @@ def planar_box_problem(
 
     Returns:
         The :class:`ContactProblem` with ``n = 3``, ``K = len(corners)``, ``D = 2``.
+
+    Raises:
+        ValueError: naming the argument that is not of the documented type, shape or range.
     """
-    if q.shape[-1:] != (3,) or v.shape != q.shape:
-        raise ValueError(f"q and v must both have shape (*B, 3), got {q.shape} and {v.shape}")
+    q = check_float("q", q, trailing=(3,), min_ndim=1, what="(*B, 3)")
+    v = check_float("v", v, trailing=(3,), min_ndim=1, what="(*B, 3)")
+    check_like("v", v, reference_name="q", reference=q)
+    if v.shape != q.shape:
+        raise ValueError(f"v must have the shape of q {tuple(q.shape)}, got {tuple(v.shape)}")
+    if force is not None:
+        check_float("force", force, trailing=(2,), min_ndim=1, what="(*B, 2)")
+        check_like("force", force, reference_name="q", reference=q)
+        if force.shape[:-1] != q.shape[:-1]:
+            raise ValueError(
+                f"force must have shape {(*q.shape[:-1], 2)}, got {tuple(force.shape)}"
+            )
+    if len(half_extents) != 2:
+        raise ValueError(f"half_extents must be a pair (a, b), got {half_extents!r}")
+    for index, extent in enumerate(half_extents):
+        check_positive(f"half_extents[{index}]", extent)
+    check_positive("mass", mass)
+    check_real("mu", mu, low=0.0)
+    check_positive("h", h)
+    for name, pair in (("gravity", gravity), ("force_point", force_point)):
+        if len(pair) != 2:
+            raise ValueError(f"{name} must be a pair, got {pair!r}")
+        for index, value in enumerate(pair):
+            check_real(f"{name}[{index}]", value)
+    for index, corner in enumerate(corners):
+        check_int(f"corners[{index}]", corner, low=0, high=len(BOX_CORNER_SIGNS))
     dtype, device = q.dtype, q.device
     batch = q.shape[:-1]
     a, b = half_extents

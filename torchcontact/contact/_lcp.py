@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchcontact._checks import check_positive, check_tensor, describe
 from torchcontact.contact._problem import ContactProblem
 from torchcontact.contact._solution import Solution
 
@@ -102,13 +103,95 @@ def lcp_residual(problem: ContactProblem, *, v_next: Tensor, pn: Tensor, pt: Ten
     return per_slot.amax(dim=-1) if per_slot.shape[-1] else per_slot.sum(dim=-1)
 
 
-def _scales(problem: ContactProblem, pn: Tensor) -> tuple[Tensor, Tensor]:
-    """Velocity and impulse scales ``(*B, 1)`` that turn absolute tolerances into relative ones."""
-    velocity = torch.cat(
-        [problem.v_free().abs(), (problem.phi / problem.h).abs(), problem.b_normal.abs()], dim=-1
+def problem_scales(
+    problem: ContactProblem,
+    *,
+    v_next: Tensor,
+    pn: Tensor,
+    pt: Tensor,
+    v_free: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Velocity and impulse scales ``(*B, 1)`` of a candidate solution, for relative tests.
+
+    Both follow the problem's own units, so a test against them is invariant under a change
+    of units of time, mass or length (``h``, ``M``, ``v`` scaled together or apart):
+
+    * velocity: the largest constraint velocity the step starts from or the impulses cause
+      over the real slots, ``|J v_free|``, ``|b|``, ``|J (v⁺ − v_free)|``, and the
+      penetration-recovery rate ``−φ/h`` of penetrating slots (a positive ``φ/h``, a slot far
+      away, sets no scale for the others);
+    * impulse: the largest generalized momentum ``|M v|``, ``|h f|``, ``|M (v⁺ − v_free)|``
+      (``= |Jᵀ p|``), or impulse.
+
+    Both are floored at the dtype's ``tiny`` (a problem at rest with no force has scale 0).
+    ``v_free`` (``(*B, n)``, :meth:`ContactProblem.v_free`) is computed when not given.
+    """
+    tiny = torch.finfo(problem.dtype).tiny
+    v_free = problem.v_free() if v_free is None else v_free
+    K, D = problem.num_slots, problem.num_directions
+    # [v_free, v⁺ − v_free] as two columns: one product per row block gives both terms.
+    columns = torch.stack([v_free, v_next - v_free], dim=-1)  # (*B, n, 2)
+    normal = (problem.Jn @ columns).abs().amax(dim=-1)
+    tangent = (problem.Jt.flatten(-3, -2) @ columns).abs().amax(dim=-1)
+    known = torch.maximum(problem.b_normal.abs(), problem.b_tangent.abs().amax(dim=-1))
+    per_slot = torch.maximum(normal, tangent.unflatten(-1, (K, D)).amax(dim=-1))
+    per_slot = torch.maximum(per_slot, known)
+    per_slot = torch.maximum(per_slot, (-problem.phi / problem.h).clamp(min=0.0))
+    per_slot = torch.where(problem.slot_mask, per_slot, torch.zeros((), dtype=per_slot.dtype))
+    velocity = torch.nn.functional.pad(per_slot, (0, 1)).amax(dim=-1, keepdim=True)
+    # |M v| and |M (v⁺ − v_free)| (= |Jᵀ p| by the Newton–Euler row) in one product.
+    momenta = problem.M @ torch.stack([problem.v, columns[..., 1]], dim=-1)  # (*B, n, 2)
+    impulse = torch.cat(
+        [
+            momenta.abs().flatten(-2),
+            (problem.h * problem.f).abs(),
+            pn.abs(),
+            pt.flatten(-2).abs(),
+        ],
+        dim=-1,
     ).amax(dim=-1, keepdim=True)
-    impulse = pn.abs().amax(dim=-1, keepdim=True) if pn.shape[-1] else pn.sum(-1, keepdim=True)
-    return 1.0 + velocity, 1.0 + impulse
+    return velocity.clamp(min=tiny), impulse.clamp(min=tiny)
+
+
+def relative_residual(
+    problem: ContactProblem,
+    *,
+    v_next: Tensor,
+    pn: Tensor,
+    pt: Tensor,
+    v_free: Tensor | None = None,
+) -> Tensor:
+    """Scale-invariant natural-map residual of the Stewart–Trinkle LCP.
+
+    :func:`lcp_residual` with every impulse divided by the impulse scale and every velocity by
+    the velocity scale of :func:`problem_scales`: the same number whatever the units of time,
+    mass and length, so one tolerance decides convergence at every scale of ``h``, ``M`` and
+    ``v``. Padding slots contribute their impulses relative to the impulse scale.
+
+    Args:
+        problem: the contact problem.
+        v_next: ``(*B, n)`` end-of-step velocity, assumed to satisfy the Newton–Euler row.
+        pn: ``(*B, K)`` normal impulses.
+        pt: ``(*B, K, D)`` friction impulses.
+        v_free: ``(*B, n)`` the contact-free velocity if the caller has it (else computed).
+
+    Returns:
+        ``(*B,)`` relative residual, zero exactly at a solution.
+    """
+    velocity_scale, impulse_scale = problem_scales(
+        problem, v_next=v_next, pn=pn, pt=pt, v_free=v_free
+    )
+    gap_rate, slip = velocity_terms(problem, v_next)
+    gap_rate, slip = gap_rate / velocity_scale, slip / velocity_scale.unsqueeze(-1)
+    pn, pt = pn / impulse_scale, pt / impulse_scale.unsqueeze(-1)
+    sigma = (-slip.amin(dim=-1)).clamp(min=0.0)
+    normal = torch.minimum(pn, gap_rate).abs()
+    friction = torch.minimum(pt, slip + sigma.unsqueeze(-1)).abs().amax(dim=-1)
+    cone = torch.minimum(sigma, problem.mu * pn - pt.sum(dim=-1)).abs()
+    per_slot = torch.maximum(torch.maximum(normal, friction), cone)
+    padding = torch.maximum(pn.abs(), pt.abs().amax(dim=-1))
+    per_slot = torch.where(problem.slot_mask, per_slot, padding)
+    return per_slot.amax(dim=-1) if per_slot.shape[-1] else per_slot.sum(dim=-1)
 
 
 def contact_mode(
@@ -116,6 +199,7 @@ def contact_mode(
     *,
     v_next: Tensor,
     pn: Tensor,
+    pt: Tensor | None = None,
     atol: float | None = None,
 ) -> Tensor:
     """Read the contact mode of each slot off a solution.
@@ -128,13 +212,16 @@ def contact_mode(
         problem: the contact problem.
         v_next: ``(*B, n)`` end-of-step velocity.
         pn: ``(*B, K)`` normal impulses.
+        pt: ``(*B, K, D)`` friction impulses (their size enters the impulse scale of
+            :func:`problem_scales`); default zeros.
         atol: relative tolerance; default :func:`default_tolerance` of the dtype times 10.
 
     Returns:
         ``(*B, K)`` long modes (0 separated, 1 sticking, ``2 + d`` sliding along ``d``).
     """
     tol = 10 * default_tolerance(problem.dtype) if atol is None else atol
-    velocity_scale, impulse_scale = _scales(problem, pn)
+    pt = torch.zeros_like(problem.b_tangent) if pt is None else pt
+    velocity_scale, impulse_scale = problem_scales(problem, v_next=v_next, pn=pn, pt=pt)
     _, slip = velocity_terms(problem, v_next)
     active = problem.slot_mask & (pn > tol * impulse_scale)
     sticking = slip.abs().amax(dim=-1) <= tol * velocity_scale
@@ -162,10 +249,14 @@ def is_consistent(
 
     Returns:
         ``(*B,)`` bool, ``True`` where the solution is consistent with its modes.
+
+    Raises:
+        ValueError: ``problem`` or ``solution`` is not one, or their shapes or dtypes differ.
     """
+    check_solution(problem, solution)
     v_next, pn, pt, mode = solution.v_next, solution.pn, solution.pt, solution.mode
-    tol = 10 * default_tolerance(problem.dtype) if atol is None else atol
-    velocity_scale, impulse_scale = _scales(problem, pn)
+    tol = 10 * default_tolerance(problem.dtype) if atol is None else check_positive("atol", atol)
+    velocity_scale, impulse_scale = problem_scales(problem, v_next=v_next, pn=pn, pt=pt)
     v_tol, p_tol = tol * velocity_scale, tol * impulse_scale
     p_tol_d = p_tol.unsqueeze(-1)
     gap_rate, slip = velocity_terms(problem, v_next)
@@ -190,3 +281,31 @@ def is_consistent(
     )
     per_slot = torch.where(problem.slot_mask, per_slot & nonnegative, no_impulse)
     return per_slot.all(dim=-1)
+
+
+def check_solution(problem: object, solution: object) -> None:
+    """Check that ``solution`` is a :class:`Solution` shaped like ``problem``'s.
+
+    Raises:
+        ValueError: naming ``problem`` or ``solution`` (and the field at fault).
+    """
+    if not isinstance(problem, ContactProblem):
+        raise ValueError(f"problem must be a ContactProblem, got {type(problem).__name__}")
+    if not isinstance(solution, Solution):
+        raise ValueError(f"solution must be a Solution, got {type(solution).__name__}")
+    batch, K, D = problem.batch_shape, problem.num_slots, problem.num_directions
+    for name, event in (("v_next", (problem.num_dofs,)), ("pn", (K,)), ("pt", (K, D))):
+        value = check_tensor(
+            f"solution.{name}", getattr(solution, name), event_shape=event, like=problem.M
+        )
+        if value.shape[: value.dim() - len(event)] != batch:
+            raise ValueError(
+                f"solution.{name}: expected batch shape {tuple(batch)}, got {tuple(value.shape)}"
+            )
+    mode = solution.mode
+    if not isinstance(mode, Tensor) or mode.dtype != torch.long or mode.shape != (*batch, K):
+        raise ValueError(
+            f"solution.mode must be a long tensor of shape {(*batch, K)}, got {describe(mode)}"
+        )
+    if mode.numel() and (int(mode.min()) < 0 or int(mode.max()) >= SLIDING + D):
+        raise ValueError(f"solution.mode values must lie in [0, {SLIDING + D})")

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
+from torchcontact._checks import check_int
 from torchcontact.contact._lcp import default_tolerance
 from torchcontact.contact._per_problem import solve_one_by_one
 from torchcontact.contact._problem import ContactProblem
@@ -77,7 +78,9 @@ def lemke(A: FloatArray, q: FloatArray, *, max_pivots: int | None = None) -> Lem
     rhs = q.astype(np.float64).copy()
     basis = np.arange(N)
     z0 = 2 * N
-    scale = 1.0 + np.abs(A).max() + np.abs(q).max()
+    # Tolerances follow the entries that drive the pivoting: a large positive q (a slack that
+    # never leaves the basis, e.g. a contact far away) must not loosen the ratio tests.
+    scale = 1.0 + np.abs(A).max() + float(-q.min())
     pivot_tol = 1e-12 * scale
 
     entering = z0
@@ -162,7 +165,9 @@ def solve_lemke(problem: ContactProblem, *, max_pivots: int | None = None) -> So
         ``q = [Jn v_free + bn + φ/h; Jt v_free + bt; 0]``
 
     with ``W = J M⁻¹ Jᵀ``. Problems are converted to float64 for the pivoting and the answer
-    is returned in the problem's dtype.
+    is returned in the problem's dtype. Each LCP is pivoted in units that make its data of
+    order one, so the pivot tolerances, and the answer, do not depend on the units of ``h``,
+    ``M`` and ``v``.
 
     Args:
         problem: the contact problem, batch ``*B``.
@@ -170,8 +175,12 @@ def solve_lemke(problem: ContactProblem, *, max_pivots: int | None = None) -> So
 
     Returns:
         The :class:`Solution`; ``status.converged`` is ``False`` where Lemke stopped on a ray or
-        the pivot limit, or where the result's residual exceeds the float64 tolerance.
+        the pivot limit, or where the result's scale-invariant residual
+        (:func:`~torchcontact.contact.relative_residual`) exceeds the float64 tolerance.
     """
+
+    if max_pivots is not None:
+        check_int("max_pivots", max_pivots, low=1)
 
     def solve_one(
         W: FloatArray, q: FloatArray, mu: FloatArray, D: int
@@ -180,7 +189,11 @@ def solve_lemke(problem: ContactProblem, *, max_pivots: int | None = None) -> So
         return result.z[: q.size], result.outcome is LemkeOutcome.SOLVED, result.pivots
 
     return solve_one_by_one(
-        problem, solve_one, tolerance=default_tolerance(torch.float64), mode_atol=None
+        problem,
+        solve_one,
+        tolerance=default_tolerance(torch.float64),
+        mode_atol=None,
+        normalize=True,
     )
 
 

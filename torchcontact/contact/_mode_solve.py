@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchcontact._checks import check_tensor
 from torchcontact.contact._lcp import (
     SLIDING,
     STICKING,
@@ -95,6 +96,14 @@ def solve_mode(
         ``status.residual`` is the LCP residual, zero only when the mode was the right one.
     """
     mode = validate_mode(problem, mode)
+    if initial_impulses is not None:
+        if not isinstance(initial_impulses, tuple) or len(initial_impulses) != 2:
+            raise ValueError("initial_impulses must be a pair (pn, pt) of tensors")
+        for name, value, event in (
+            ("initial_impulses[0]", initial_impulses[0], (problem.num_slots,)),
+            ("initial_impulses[1]", initial_impulses[1], problem.b_tangent.shape[-2:]),
+        ):
+            check_tensor(name, value, event_shape=event, like=problem.M)
     mask = problem.slot_mask
     mode = torch.where(mask, mode, torch.zeros_like(mode))
     batch, n = problem.batch_shape, problem.num_dofs
@@ -158,8 +167,10 @@ def solve_mode(
     pt_stick = _bracket_decomposition(Jt, tangential, sticking)
     pt = torch.where(sticking.unsqueeze(-1), pt_stick, pt_slide)
 
-    equality_error = ((A @ x.unsqueeze(-1)).squeeze(-1) - b).abs().amax(dim=-1)
-    scale = 1.0 + b.abs().amax(dim=-1) + (A.abs().amax(dim=(-1, -2)) * x.abs().amax(dim=-1))
+    equality_error = _largest(((A @ x.unsqueeze(-1)).squeeze(-1) - b).abs())
+    # Relative to the system's own terms: the same test at every scale of h, M and v.
+    scale = _largest(b.abs()) + _largest(A.abs().flatten(-2)) * _largest(x.abs())
+    scale = scale.clamp(min=torch.finfo(problem.dtype).tiny)
     finite = torch.isfinite(v_next).all(dim=-1) & torch.isfinite(pt).all(dim=(-1, -2))
     tolerance = default_tolerance(problem.dtype)
     converged = finite & (equality_error <= tolerance * scale)
@@ -170,6 +181,11 @@ def solve_mode(
         iterations=torch.ones(batch, dtype=torch.long, device=problem.device),
     )
     return Solution(v_next=v_next, pn=pn, pt=pt, mode=mode, status=status)
+
+
+def _largest(values: Tensor) -> Tensor:
+    """``(*B,)`` largest of non-negative ``values (*B, m)``, zero when ``m == 0``."""
+    return torch.nn.functional.pad(values, (0, 1)).amax(dim=-1)
 
 
 def _iterated_tikhonov(

@@ -5,7 +5,14 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchcontact.contact._lcp import contact_mode, default_tolerance, delassus, lcp_residual
+from torchcontact._checks import check_int, check_positive
+from torchcontact.contact._lcp import (
+    contact_mode,
+    default_tolerance,
+    delassus,
+    lcp_residual,
+    relative_residual,
+)
 from torchcontact.contact._problem import ContactProblem
 from torchcontact.contact._solution import Solution, SolveStatus
 
@@ -36,8 +43,8 @@ def solve_pgs(
     Args:
         problem: the contact problem, batch ``*B``.
         max_sweeps: sweep limit.
-        tol: residual tolerance relative to ``1 + max |q|``; default 1e-9 (float64) or
-            1e-4 (float32).
+        tol: tolerance on the scale-invariant :func:`relative_residual`; default 1e-9
+            (float64) or 1e-4 (float32).
         check_every: sweeps between residual checks.
 
     Returns:
@@ -49,9 +56,9 @@ def solve_pgs(
         K. Erleben, "Velocity-based shock propagation for multibody dynamics animation",
         ACM TOG 26(2), 2007.
     """
-    if max_sweeps < 1 or check_every < 1:
-        raise ValueError("max_sweeps and check_every must be >= 1")
-    tolerance = default_tolerance(problem.dtype) if tol is None else tol
+    check_int("max_sweeps", max_sweeps, low=1)
+    check_int("check_every", check_every, low=1)
+    tolerance = default_tolerance(problem.dtype) if tol is None else check_positive("tol", tol)
     K, D = problem.num_slots, problem.num_directions
     with torch.no_grad():
         W, Minv_JT = delassus(problem)
@@ -63,12 +70,11 @@ def solve_pgs(
         diag = W.diagonal(dim1=-2, dim2=-1)
         W_nn = diag[..., :K].clamp(min=torch.finfo(problem.dtype).tiny)
         W_tt = W[..., K:, K:].unflatten(-2, (K, D)).unflatten(-1, (K, D))
-        block = torch.stack([W_tt[..., k, :, k, :] for k in range(K)], dim=-3)
+        block = W_tt.diagonal(dim1=-4, dim2=-2).movedim(-1, -3)  # (*B, K, D, D)
         lipschitz = block.abs().sum(dim=-1).amax(dim=-1).clamp(min=torch.finfo(problem.dtype).tiny)
         Minv_Jn = Minv_JT[..., :K]
         Minv_Jt = Minv_JT[..., K:].unflatten(-1, (K, D))
         bias = problem.b_normal + problem.phi / problem.h
-        scale = 1.0 + torch.cat([v_free.abs(), bias.abs()], dim=-1).amax(dim=-1)
 
         sweeps = 0
         converged = torch.zeros(problem.batch_shape, dtype=torch.bool, device=problem.device)
@@ -88,14 +94,17 @@ def solve_pgs(
             sweeps += 1
             if sweeps % check_every == 0 or sweeps == max_sweeps:
                 v = v_free + (Minv_JT @ torch.cat([pn, pt.flatten(-2)], -1).unsqueeze(-1))[..., 0]
-                residual = lcp_residual(problem, v_next=v, pn=pn, pt=pt)
-                converged = residual <= tolerance * scale
+                converged = (
+                    relative_residual(problem, v_next=v, pn=pn, pt=pt, v_free=v_free) <= tolerance
+                )
                 if bool(converged.all()):
                     break
         v_next = v_free + (Minv_JT @ torch.cat([pn, pt.flatten(-2)], -1).unsqueeze(-1))[..., 0]
         residual = lcp_residual(problem, v_next=v_next, pn=pn, pt=pt)
-        converged = residual <= tolerance * scale
-        mode = contact_mode(problem, v_next=v_next, pn=pn, atol=max(10 * tolerance, 1e-7))
+        converged = (
+            relative_residual(problem, v_next=v_next, pn=pn, pt=pt, v_free=v_free) <= tolerance
+        )
+        mode = contact_mode(problem, v_next=v_next, pn=pn, pt=pt, atol=max(10 * tolerance, 1e-7))
     iterations = torch.full(problem.batch_shape, sweeps, dtype=torch.long, device=problem.device)
     status = SolveStatus(converged=converged, residual=residual, iterations=iterations)
     return Solution(v_next=v_next, pn=pn, pt=pt, mode=mode, status=status)

@@ -9,6 +9,14 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchcontact._checks import (
+    FLOAT_DTYPES,
+    all_finite,
+    broadcast_batch,
+    check_positive,
+    describe,
+)
+
 _TENSOR_FIELDS = ("M", "v", "f", "Jn", "Jt", "phi", "mu", "mask", "bn", "bt")
 
 
@@ -171,13 +179,16 @@ class ContactProblem:
 
 
 def _validate_and_broadcast(problem: ContactProblem) -> None:
-    """Check every field of ``problem`` and broadcast them to one batch shape (in place)."""
+    """Check every field of ``problem`` and broadcast them to one batch shape (in place).
+
+    Empty batches and ``K = 0`` slots are legal: every check holds vacuously.
+    """
     for name in ("M", "v", "f", "Jn", "Jt", "phi", "mu"):
         value = getattr(problem, name)
         if not isinstance(value, Tensor):
             raise ValueError(f"{name} must be a torch.Tensor, got {type(value).__name__}")
-        if not value.is_floating_point():
-            raise ValueError(f"{name} must be a floating tensor, got dtype {value.dtype}")
+        if value.dtype not in FLOAT_DTYPES:
+            raise ValueError(f"{name} must be float32 or float64, got dtype {value.dtype}")
     M = problem.M
     if M.dim() < 2 or M.shape[-1] != M.shape[-2] or M.shape[-1] == 0:
         raise ValueError(f"M must have shape (*B, n, n) with n > 0, got {tuple(M.shape)}")
@@ -191,15 +202,14 @@ def _validate_and_broadcast(problem: ContactProblem) -> None:
     D = Jt.shape[-2]
     if D < 2 or D % 2:
         raise ValueError(f"Jt must have an even number D >= 2 of friction directions, got {D}")
-    if not isinstance(problem.h, (int, float)) or not math.isfinite(problem.h) or problem.h <= 0:
-        raise ValueError(f"h must be a finite number > 0, got {problem.h!r}")
+    h = check_positive("h", problem.h)
 
     dtype, device = M.dtype, M.device
     mask = problem.mask
     if mask is None:
         mask = torch.ones(problem.phi.shape, dtype=torch.bool, device=device)
     elif not isinstance(mask, Tensor) or mask.dtype != torch.bool:
-        raise ValueError("mask must be a bool tensor of shape (*B, K)")
+        raise ValueError(f"mask must be a bool tensor of shape (*B, K), got {describe(mask)}")
     bn = problem.bn if problem.bn is not None else torch.zeros((K,), dtype=dtype, device=device)
     bt = problem.bt if problem.bt is not None else torch.zeros((K, D), dtype=dtype, device=device)
 
@@ -238,28 +248,28 @@ def _validate_and_broadcast(problem: ContactProblem) -> None:
         if name != "mask":
             if value.dtype != dtype:
                 raise ValueError(f"{name} has dtype {value.dtype}, but M has dtype {dtype}")
-            if not bool(torch.isfinite(value).all()):
+            if value.numel() and not all_finite(value):
                 raise ValueError(f"{name} contains NaN or inf")
         if value.device != device:
             raise ValueError(f"{name} is on {value.device}, but M is on {device}")
         batch_shapes.append((name, value.shape[: value.dim() - len(tail)]))
-    try:
-        batch = torch.broadcast_shapes(*(shape for _, shape in batch_shapes))
-    except RuntimeError as error:
-        listing = ", ".join(f"{name}: {tuple(shape)}" for name, shape in batch_shapes)
-        raise ValueError(f"batch dimensions of the fields do not broadcast ({listing})") from error
+    batch = broadcast_batch(batch_shapes)
 
-    if bool((values["mu"] < 0).any()):
-        raise ValueError("mu must be >= 0 everywhere")
-    M_sym_error = (M - M.transpose(-1, -2)).abs().amax(dim=(-1, -2))
-    M_scale = M.abs().amax(dim=(-1, -2))
-    if bool((M_sym_error > 1e-8 * M_scale + torch.finfo(dtype).tiny).any()):
-        raise ValueError("M must be symmetric")
-    _, info = torch.linalg.cholesky_ex(M)
-    if bool((info != 0).any()):
-        raise ValueError("M must be positive definite (Cholesky factorization failed)")
+    mu = values["mu"]
+    if mu.numel() and bool((mu < 0).any()):
+        raise ValueError(f"mu must be >= 0 everywhere, got minimum {float(mu.min())}")
+    if M.numel():
+        M_sym_error = (M - M.transpose(-1, -2)).abs().amax(dim=(-1, -2))
+        M_scale = M.abs().amax(dim=(-1, -2))
+        if bool((M_sym_error > 1e-8 * M_scale + torch.finfo(dtype).tiny).any()):
+            raise ValueError("M must be symmetric")
+        _, info = torch.linalg.cholesky_ex(M)
+        if bool((info != 0).any()):
+            raise ValueError("M must be positive definite (Cholesky factorization failed)")
     half = D // 2
     for name, value, axis in (("Jt", Jt, -2), ("bt", bt, -1)):
+        if value.numel() == 0:
+            continue
         first, second = value.split(half, dim=axis)
         scale = 1.0 + value.abs().amax()
         if bool(((first + second).abs() > 1e-6 * scale).any()):
@@ -271,4 +281,4 @@ def _validate_and_broadcast(problem: ContactProblem) -> None:
     for name, value in values.items():
         tail = trailing[name]
         object.__setattr__(problem, name, value.expand(*batch, *tail))
-    object.__setattr__(problem, "h", float(problem.h))
+    object.__setattr__(problem, "h", h)

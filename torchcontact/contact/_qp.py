@@ -10,6 +10,7 @@ import torch
 from numpy.typing import NDArray
 from qpsolvers import Problem, solve_problem
 
+from torchcontact._checks import check_int, check_positive
 from torchcontact.contact._lcp import default_tolerance
 from torchcontact.contact._per_problem import solve_one_by_one
 from torchcontact.contact._problem import ContactProblem
@@ -64,6 +65,9 @@ def solve_qp(problem: ContactProblem, *, max_rounds: int = 500, tol: float = 1e-
         B. Stellato et al., "OSQP: an operator splitting solver for quadratic programs",
         Math. Prog. Comp. 12, 2020.
     """
+
+    check_int("max_rounds", max_rounds, low=1)
+    check_positive("tol", tol)
 
     def solve_one(
         W: FloatArray, q: FloatArray, mu: FloatArray, D: int

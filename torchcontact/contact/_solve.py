@@ -12,6 +12,13 @@ from torchcontact.contact._solution import Solution
 
 Method = Literal["lemke", "qp", "pgs"]
 
+#: The keyword options of each method's solver.
+_OPTIONS = {
+    "lemke": ("max_pivots",),
+    "qp": ("max_rounds", "tol"),
+    "pgs": ("max_sweeps", "tol", "check_every"),
+}
+
 
 def solve(problem: ContactProblem, method: Method = "lemke", **options: Any) -> Solution:
     """Solve a batch of contact problems.
@@ -27,14 +34,20 @@ def solve(problem: ContactProblem, method: Method = "lemke", **options: Any) -> 
         The :class:`Solution`, with a per-problem status: check ``status.converged``.
 
     Raises:
-        ValueError: if ``method`` is not one of the three.
+        ValueError: if ``method`` is not one of the three, or an option is not one of its
+            solver's (or is out of range).
     """
     if not isinstance(problem, ContactProblem):
         raise ValueError(f"problem must be a ContactProblem, got {type(problem).__name__}")
+    if not isinstance(method, str) or method not in _OPTIONS:
+        raise ValueError(f"method must be 'lemke', 'qp' or 'pgs', got {method!r}")
+    unknown = sorted(set(options) - set(_OPTIONS[method]))
+    if unknown:
+        raise ValueError(
+            f"options: {method!r} takes {', '.join(_OPTIONS[method])}, got unknown {unknown}"
+        )
     if method == "lemke":
         return solve_lemke(problem, **options)
     if method == "qp":
         return solve_qp(problem, **options)
-    if method == "pgs":
-        return solve_pgs(problem, **options)
-    raise ValueError(f"method must be 'lemke', 'qp' or 'pgs', got {method!r}")
+    return solve_pgs(problem, **options)

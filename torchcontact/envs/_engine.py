@@ -525,5 +525,5 @@ class CompactSimulator:
                 codes = torch.where(reproduced, SOLVED_BY_EXACT_MODE, SOLVED_RAW)
                 solver = solver.index_put((done,), codes)
             pending = pending[~converged]
-        canonical = contact_mode(problem, v_next=solution.v_next, pn=solution.pn)
+        canonical = contact_mode(problem, v_next=solution.v_next, pn=solution.pn, pt=solution.pt)
         return replace(solution, mode=canonical), solver

@@ -181,7 +181,7 @@ class PegInHole2D(gym.Env[Observation, Any]):
             ValueError: ``action`` is not a valid action.
             RuntimeError: :meth:`reset` was never called.
         """
-        if not self.action_space.contains(action):
+        if isinstance(action, (bool, np.bool_)) or not self.action_space.contains(action):
             raise ValueError(f"action must be an int in [0, {len(ACTION_NAMES)}), got {action!r}")
         physics = self.physics
         actions = torch.tensor([int(action)], dtype=torch.long)

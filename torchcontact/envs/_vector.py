@@ -141,15 +141,31 @@ class PegInHole2DVector(VectorEnv[Observation, NDArray[np.int64], NDArray[Any]])
     def step(
         self, actions: NDArray[np.int64]
     ) -> tuple[Observation, NDArray[Any], NDArray[Any], NDArray[Any], dict[str, Any]]:
-        """Step every sub-environment (auto-resetting those that ended on the last step)."""
+        """Step every sub-environment (auto-resetting those that ended on the last step).
+
+        Args:
+            actions: ``(num_envs,)`` integer array of actions in ``[0, 7)``.
+
+        Raises:
+            ValueError: ``actions`` is not an integer array of that shape and range (floats,
+                bools and strings are refused, not cast).
+            RuntimeError: :meth:`reset` was never called.
+        """
         physics = self.physics
         rngs = self._generators()
-        action = np.asarray(actions)
         B = self.num_envs
-        if action.shape != (B,) or not self.action_space.contains(action.astype(np.int64)):
-            raise ValueError(
-                f"actions must be {B} ints in [0, {len(ACTION_NAMES)}), got {actions!r}"
-            )
+        message = f"actions must be {B} ints in [0, {len(ACTION_NAMES)}), got {actions!r}"
+        try:
+            action = np.asarray(actions)
+        except ValueError as error:  # a ragged sequence
+            raise ValueError(message) from error
+        # Integers only: a cast would truncate 2.5 to 2 and read "1" or True as actions.
+        integral = np.issubdtype(action.dtype, np.integer)
+        if action.shape != (B,) or not integral:
+            raise ValueError(message)
+        action = action.astype(np.int64)
+        if not self.action_space.contains(action):
+            raise ValueError(message)
         resetting = self._autoreset.copy()
         stepping = ~resetting
         moved = torch.from_numpy(np.flatnonzero(stepping))

@@ -8,6 +8,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchcontact._checks import check_float, check_int, check_positive, check_real, describe
 from torchcontact.geometry._se2 import cross2, perpendicular
 
 
@@ -23,11 +24,11 @@ class Polygon:
     vertices: Tensor
 
     def __post_init__(self) -> None:
-        vertices = self.vertices
-        if not isinstance(vertices, Tensor) or vertices.dim() != 2 or vertices.shape[-1] != 2:
-            raise ValueError("vertices must be a tensor of shape (V, 2)")
-        if vertices.shape[0] < 3 or not bool(torch.isfinite(vertices).all()):
-            raise ValueError("vertices must hold at least 3 finite points")
+        vertices = check_float("vertices", self.vertices, trailing=(2,), min_ndim=2, what="(V, 2)")
+        if vertices.dim() != 2 or vertices.shape[0] < 3:
+            raise ValueError(
+                f"vertices must have shape (V, 2) with at least 3 points, got {describe(vertices)}"
+            )
         edges = vertices.roll(-1, dims=0) - vertices
         turns = cross2(edges, edges.roll(-1, dims=0))
         if not bool((turns > 0).all()):
@@ -58,16 +59,13 @@ class Polygon:
     @staticmethod
     def box(width: float, height: float) -> Polygon:
         """An axis-aligned ``width × height`` rectangle centred on the origin."""
-        if width <= 0 or height <= 0:
-            raise ValueError(f"width and height must be > 0, got {width}, {height}")
-        a, b = width / 2, height / 2
+        a, b = check_positive("width", width) / 2, check_positive("height", height) / 2
         return Polygon(torch.tensor([[-a, -b], [a, -b], [a, b], [-a, b]], dtype=torch.float64))
 
     @staticmethod
     def triangle(base: float, height: float) -> Polygon:
         """An isosceles triangle with a horizontal base and its apex above, centroid at origin."""
-        if base <= 0 or height <= 0:
-            raise ValueError(f"base and height must be > 0, got {base}, {height}")
+        base, height = check_positive("base", base), check_positive("height", height)
         corners = torch.tensor(
             [[-base / 2, 0.0], [base / 2, 0.0], [0.0, height]], dtype=torch.float64
         )
@@ -76,8 +74,8 @@ class Polygon:
     @staticmethod
     def regular(sides: int, radius: float) -> Polygon:
         """A regular polygon with ``sides`` vertices on a circle of ``radius``."""
-        if sides < 3 or radius <= 0:
-            raise ValueError(f"need sides >= 3 and radius > 0, got {sides}, {radius}")
+        sides = check_int("sides", sides, low=3)
+        radius = check_positive("radius", radius)
         angles = torch.arange(sides, dtype=torch.float64) * (2 * math.pi / sides) - math.pi / 2
         return Polygon(radius * torch.stack([torch.cos(angles), torch.sin(angles)], -1))
 
@@ -116,19 +114,16 @@ class HalfPlane:
 
     def __post_init__(self) -> None:
         for name in ("point", "normal"):
-            value = getattr(self, name)
-            if (
-                not isinstance(value, Tensor)
-                or value.shape != (2,)
-                or not bool(torch.isfinite(value).all())
-            ):
-                raise ValueError(f"{name} must be a finite tensor of shape (2,)")
+            value = check_float(name, getattr(self, name), trailing=(2,), what="(2,)")
+            if value.shape != (2,):
+                raise ValueError(f"{name} must have shape (2,), got {tuple(value.shape)}")
         if abs(float(self.normal.norm()) - 1.0) > 1e-9:
             raise ValueError(f"normal must have unit length, got {self.normal.tolist()}")
 
     @staticmethod
     def ground(height: float = 0.0, angle: float = 0.0) -> HalfPlane:
         """Ground through ``(0, height)`` tilted by ``angle`` rad (counter-clockwise)."""
+        height, angle = check_real("height", height), check_real("angle", angle)
         normal = torch.tensor([-math.sin(angle), math.cos(angle)], dtype=torch.float64)
         return HalfPlane(torch.tensor([0.0, height], dtype=torch.float64), normal)
 

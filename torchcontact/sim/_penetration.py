@@ -7,6 +7,7 @@ import math
 import torch
 from torch import Tensor
 
+from torchcontact._checks import check_batched, check_float
 from torchcontact.geometry import HalfPlane, Polygon, halfplane_slots, polygon_slots, wrench_row
 from torchcontact.sim._assemble import polygon_vertices, poses_of
 from torchcontact.sim._scene import Scene
@@ -38,17 +39,17 @@ def penetration(scene: Scene, *, q: Tensor, q_kinematic: Tensor) -> tuple[Tensor
         penetrating slots; ``phi`` and ``Jn`` are zero at the slots that do not penetrate.
 
     Raises:
-        ValueError: ``q`` or ``q_kinematic`` has the wrong shape.
+        ValueError: ``q`` or ``q_kinematic`` is not a finite float32/float64 tensor of the
+            documented shape, or their dtypes differ.
     """
+    if not isinstance(scene, Scene):
+        raise ValueError(f"scene must be a Scene, got {type(scene).__name__}")
     num_dynamic, num_kinematic = len(scene.dynamic), len(scene.kinematic)
-    if q.dim() < 2 or q.shape[-2:] != (num_dynamic, 3):
-        raise ValueError(f"q: expected shape (*B, {num_dynamic}, 3), got {tuple(q.shape)}")
+    q = check_float("q", q, trailing=(num_dynamic, 3), min_ndim=2, what=f"(*B, {num_dynamic}, 3)")
     batch = q.shape[:-2]
-    if q_kinematic.shape != (*batch, num_kinematic, 3):
-        raise ValueError(
-            f"q_kinematic: expected shape {(*batch, num_kinematic, 3)}, "
-            f"got {tuple(q_kinematic.shape)}"
-        )
+    check_batched(
+        "q_kinematic", q_kinematic, shape=(*batch, num_kinematic, 3), like=q, like_name="q"
+    )
     P, K, dtype = math.prod(batch), scene.num_slots, q.dtype
     poses = poses_of(
         scene,
@@ -104,4 +105,4 @@ def penetration(scene: Scene, *, q: Tensor, q_kinematic: Tensor) -> tuple[Tensor
             )
     phi = torch.where(penetrating, phi, 0.0)
     Jn = Jn * penetrating[..., None]
-    return phi.view(*batch, K), Jn.view(*batch, K, -1), penetrating.view(*batch, K)
+    return phi.view(*batch, K), Jn.view(*batch, K, 3 * num_dynamic), penetrating.view(*batch, K)

@@ -10,6 +10,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from torchcontact._checks import check_float, check_positive, check_real, describe
 from torchcontact.geometry import HalfPlane, Polygon
 
 BodyKind = Literal["dynamic", "kinematic", "static"]
@@ -42,19 +43,32 @@ class Body:
     pose: Tensor | None = None
 
     def __post_init__(self) -> None:
-        if self.kind not in ("dynamic", "kinematic", "static"):
+        if not isinstance(self.name, str):
+            raise ValueError(f"name must be a str, got {type(self.name).__name__}")
+        if not isinstance(self.kind, str) or self.kind not in ("dynamic", "kinematic", "static"):
             raise ValueError(f"kind must be 'dynamic', 'kinematic' or 'static', got {self.kind!r}")
         if isinstance(self.shape, HalfPlane) and self.kind != "static":
             raise ValueError(f"body {self.name!r}: a HalfPlane can only be static")
         if not isinstance(self.shape, (Polygon, HalfPlane)):
             raise ValueError(f"body {self.name!r}: shape must be a Polygon or a HalfPlane")
         needs_pose = self.kind == "static" and isinstance(self.shape, Polygon)
-        if needs_pose and (self.pose is None or tuple(self.pose.shape) != (3,)):
-            raise ValueError(f"body {self.name!r}: a static polygon needs pose of shape (3,)")
+        if needs_pose and self.pose is None:
+            raise ValueError(f"pose: body {self.name!r} is a static polygon and needs a pose (3,)")
+        if self.pose is not None:
+            check_float("pose", self.pose, trailing=(3,), min_ndim=1, what="(3,)")
+            if self.pose.dim() != 1:
+                raise ValueError(f"pose must have shape (3,), got {tuple(self.pose.shape)}")
+        check_positive("density", self.density)
         for name in ("mass", "inertia"):
             value = getattr(self, name)
-            if value is not None and not float(torch.as_tensor(value).detach()) > 0:
-                raise ValueError(f"body {self.name!r}: {name} must be > 0, got {value}")
+            if isinstance(value, Tensor):
+                check_float(name, value, what="()")
+                if value.dim() != 0:
+                    raise ValueError(f"{name} must be a scalar tensor, got {describe(value)}")
+                if not float(value.detach()) > 0:
+                    raise ValueError(f"{name} must be > 0, got {float(value)}")
+            elif value is not None:
+                check_positive(name, value)
 
     def mass_value(self) -> Tensor:
         """The mass as a float64 scalar tensor (keeps a tensor's graph)."""
@@ -116,18 +130,29 @@ class Scene:
     margin: float = 0.02
 
     def __post_init__(self) -> None:
+        if not isinstance(self.bodies, tuple) or not all(isinstance(b, Body) for b in self.bodies):
+            raise ValueError(f"bodies must be a tuple of Body, got {describe(self.bodies)}")
         names = [body.name for body in self.bodies]
         if len(set(names)) != len(names):
             raise ValueError(f"bodies must have unique names, got {names}")
         if not self.dynamic:
             raise ValueError("bodies must include at least one dynamic body")
-        if not self.h > 0:
-            raise ValueError(f"h must be > 0, got {self.h}")
-        if not self.margin >= 0:
-            raise ValueError(f"margin must be >= 0, got {self.margin}")
-        for a, b in self.pair_friction:
+        check_positive("h", self.h)
+        check_real("margin", self.margin, low=0.0)
+        if not isinstance(self.gravity, tuple) or len(self.gravity) != 2:
+            raise ValueError(f"gravity must be a pair (gx, gy), got {self.gravity!r}")
+        for index, component in enumerate(self.gravity):
+            check_real(f"gravity[{index}]", component)
+        _check_friction("friction", self.friction)
+        if not isinstance(self.pair_friction, Mapping):
+            raise ValueError(f"pair_friction must be a mapping, got {describe(self.pair_friction)}")
+        for pair, value in self.pair_friction.items():
+            if not isinstance(pair, tuple) or len(pair) != 2:
+                raise ValueError(f"pair_friction keys must be name pairs, got {pair!r}")
+            a, b = pair
             if a not in names or b not in names:
                 raise ValueError(f"pair_friction names an unknown body pair ({a!r}, {b!r})")
+            _check_friction(f"pair_friction[{pair!r}]", value)
 
     @cached_property
     def dynamic(self) -> tuple[int, ...]:
@@ -222,3 +247,17 @@ class Scene:
     def masses(self) -> Tensor:
         """``(Nd,)`` float64 masses of the dynamic bodies."""
         return torch.stack([self.bodies[i].mass_value() for i in self.dynamic])
+
+
+def _check_friction(name: str, value: object) -> None:
+    """Check a friction coefficient: a finite real ``>= 0`` or such a float tensor.
+
+    Raises:
+        ValueError: naming ``name`` otherwise.
+    """
+    if isinstance(value, Tensor):
+        check_float(name, value)
+        if value.numel() and float(value.detach().min()) < 0:
+            raise ValueError(f"{name} must be >= 0, got minimum {float(value.detach().min())}")
+    else:
+        check_real(name, value, low=0.0)

@@ -7,6 +7,7 @@ from dataclasses import dataclass, replace
 import torch
 from torch import Tensor
 
+from torchcontact._checks import check_batched, check_float, check_int
 from torchcontact.contact import (
     ContactProblem,
     Method,
@@ -124,27 +125,25 @@ class Simulator:
             q: ``(*B, Nd, 3)`` dynamic-body poses.
             v: ``(*B, Nd, 3)`` twists, default zero.
             q_kinematic: ``(*B, Nk, 3)`` kinematic-body poses (required if there are any).
+
+        Raises:
+            ValueError: naming the argument that is not a finite float32/float64 tensor of
+                its shape, or whose dtype differs from ``q``'s.
         """
         num_dynamic, num_kinematic = len(self.scene.dynamic), len(self.scene.kinematic)
-        if q.dim() < 2 or q.shape[-2:] != (num_dynamic, 3):
-            raise ValueError(f"q must have shape (*B, {num_dynamic}, 3), got {tuple(q.shape)}")
+        what = f"(*B, {num_dynamic}, 3)"
+        q = check_float("q", q, trailing=(num_dynamic, 3), min_ndim=2, what=what)
         batch = q.shape[:-2]
         if v is None:
             v = torch.zeros_like(q)
-        if v.shape != q.shape:
-            raise ValueError(f"v must have the shape of q {tuple(q.shape)}, got {tuple(v.shape)}")
+        v = check_batched("v", v, shape=q.shape, like=q, like_name="q")
         if q_kinematic is None:
             if num_kinematic:
                 raise ValueError(f"q_kinematic of shape (*B, {num_kinematic}, 3) is required")
-            q_kinematic = torch.zeros(*batch, 0, 3, dtype=q.dtype)
-        if q_kinematic.shape != (*batch, num_kinematic, 3):
-            expected = (*batch, num_kinematic, 3)
-            raise ValueError(
-                f"q_kinematic must have shape {expected}, got {tuple(q_kinematic.shape)}"
-            )
-        for name, value in (("q", q), ("v", v), ("q_kinematic", q_kinematic)):
-            if not bool(torch.isfinite(value).all()):
-                raise ValueError(f"{name} contains NaN or inf")
+            q_kinematic = torch.zeros(*batch, 0, 3, dtype=q.dtype, device=q.device)
+        q_kinematic = check_batched(
+            "q_kinematic", q_kinematic, shape=(*batch, num_kinematic, 3), like=q, like_name="q"
+        )
         mode = torch.zeros(*batch, self.scene.num_slots, dtype=torch.long)
         return SceneState(q=q, v=v, q_kinematic=q_kinematic, mode=mode)
 
@@ -162,17 +161,31 @@ class Simulator:
             state: the batched state ``*B``.
             control: ``(*B, Nk, 3)`` kinematic-body twists over the step (world frame).
             force: ``(*B, Nd, 3)`` applied generalized forces on dynamic bodies.
-            friction: ``(*B, K)`` per-slot friction overriding the scene's.
+            friction: ``(*B, K)`` per-slot friction overriding the scene's, ``>= 0``.
 
         Returns:
             The :class:`StepResult`.
+
+        Raises:
+            ValueError: naming ``state``, ``control``, ``force`` or ``friction`` when it is not
+                a finite tensor of its shape with the state's dtype (or friction is negative).
         """
-        num_kinematic = len(self.scene.kinematic)
-        if control is not None and control.shape != (*state.batch_shape, num_kinematic, 3):
-            raise ValueError(
-                f"control must have shape {(*state.batch_shape, num_kinematic, 3)}, "
-                f"got {tuple(control.shape)}"
+        if not isinstance(state, SceneState):
+            raise ValueError(f"state must be a SceneState, got {type(state).__name__}")
+        batch, K = state.batch_shape, self.scene.num_slots
+        num_dynamic, num_kinematic = len(self.scene.dynamic), len(self.scene.kinematic)
+        if control is not None:
+            check_batched(
+                "control", control, shape=(*batch, num_kinematic, 3), like=state.q, like_name="q"
             )
+        if force is not None:
+            check_batched(
+                "force", force, shape=(*batch, num_dynamic, 3), like=state.q, like_name="q"
+            )
+        if friction is not None:
+            check_batched("friction", friction, shape=(*batch, K), like=state.q, like_name="q")
+            if friction.numel() and float(friction.min()) < 0:
+                raise ValueError(f"friction must be >= 0, got minimum {float(friction.min())}")
         problem, geometry = contact_problem(
             self.scene, state, control=control, force=force, friction=friction
         )
@@ -214,13 +227,29 @@ class Simulator:
             strict: raise ``RuntimeError`` if some entry could not be solved.
 
         Returns:
-            The :class:`Rollout`.
+            The :class:`Rollout` (with ``steps == 0``: the initial state and empty per-step
+            fields).
+
+        Raises:
+            ValueError: naming ``state``, ``steps``, ``strict``, ``controls`` or ``forces``
+                when it is not of its documented type, shape or range.
         """
-        for name, value in (("controls", controls), ("forces", forces)):
-            if value is not None and value.shape[0] != steps:
-                raise ValueError(
-                    f"{name} must have {steps} steps along dim 0, got {value.shape[0]}"
+        if not isinstance(state, SceneState):
+            raise ValueError(f"state must be a SceneState, got {type(state).__name__}")
+        steps = check_int("steps", steps, low=0)
+        if not isinstance(strict, bool):
+            raise ValueError(f"strict must be a bool, got {strict!r}")
+        batch = state.batch_shape
+        for name, value, count in (
+            ("controls", controls, len(self.scene.kinematic)),
+            ("forces", forces, len(self.scene.dynamic)),
+        ):
+            if value is not None:
+                check_batched(
+                    name, value, shape=(steps, *batch, count, 3), like=state.q, like_name="q"
                 )
+        if steps == 0:
+            return self._empty_rollout(state)
         states, results = [state], []
         for t in range(steps):
             result = self.step(
@@ -243,6 +272,27 @@ class Simulator:
             normals=torch.stack([r.geometry.normals for r in results]),
             active=torch.stack([r.geometry.active for r in results]),
             solver=torch.stack([r.solver for r in results]),
+        )
+
+    def _empty_rollout(self, state: SceneState) -> Rollout:
+        """The :class:`Rollout` of zero steps from ``state``."""
+        batch, K = state.batch_shape, self.scene.num_slots
+        q = state.q
+
+        def empty(*shape: int, dtype: torch.dtype = q.dtype) -> Tensor:
+            return torch.empty(0, *batch, *shape, dtype=dtype, device=q.device)
+
+        return Rollout(
+            q=q.unsqueeze(0),
+            v=state.v.unsqueeze(0),
+            q_kinematic=state.q_kinematic.unsqueeze(0),
+            pn=empty(K),
+            pt=empty(K, 2),
+            mode=empty(K, dtype=torch.long),
+            points=empty(K, 2),
+            normals=empty(K, 2),
+            active=empty(K, dtype=torch.bool),
+            solver=empty(dtype=torch.long),
         )
 
     def _solve(self, problem: ContactProblem, guess: Tensor) -> tuple[Solution, Tensor]:
@@ -272,7 +322,9 @@ class Simulator:
             pending = pending[~converged]
         # Report canonical modes: a slot that slides at zero slip, or carries no impulse in an
         # active mode, is labelled as the solution shows it (sticking, separated).
-        canonical = contact_mode(flat, v_next=solution.v_next.detach(), pn=solution.pn.detach())
+        canonical = contact_mode(
+            flat, v_next=solution.v_next.detach(), pn=solution.pn.detach(), pt=solution.pt.detach()
+        )
         merged = replace(solution, mode=canonical)
         return merged.map_tensors(lambda t: t.reshape((*batch, *t.shape[1:]))), solver.reshape(
             batch
