@@ -92,8 +92,9 @@ def check_real(
         below = result < high if high_open else result <= high
         if math.isfinite(result) and above and below:
             return result
-    if low == 0.0 and low_open and high == math.inf:
-        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    if high == math.inf:
+        bound = f"{'>' if low_open else '>='} {low:g}"
+        raise ValueError(f"{name}: expected a finite number {bound}, got {value!r}")
     interval = f"{'(' if low_open else '['}{low}, {high}{')' if high_open else ']'}"
     raise ValueError(f"{name}: expected a finite number in {interval}, got {value!r}")
 

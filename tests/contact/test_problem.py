@@ -50,8 +50,8 @@ def _replace(name: str, value) -> dict:
         ("phi", lambda f: torch.zeros(3, dtype=torch.float64), "phi must have shape"),
         ("mu", lambda f: torch.tensor([0.5, -0.1], dtype=torch.float64), "mu must be >= 0"),
         ("mu", lambda f: [0.5, 0.5], "mu must be a torch.Tensor"),
-        ("h", lambda f: 0.0, "h must be a finite number > 0"),
-        ("h", lambda f: math.nan, "h must be a finite number > 0"),
+        ("h", lambda f: 0.0, "h: expected a finite number > 0"),
+        ("h", lambda f: math.nan, "h: expected a finite number > 0"),
     ],
 )
 def test_bad_field_raises_value_error_naming_it(name: str, make, message: str) -> None:

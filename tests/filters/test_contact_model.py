@@ -252,12 +252,13 @@ def _linearization_cases() -> list[tuple[PlanarContactModel, torch.Tensor, Kinem
 
 
 def test_linearization_matches_central_differences_of_the_step() -> None:
+    seen_consistent = seen_unsolvable = seen_modes = 0
     for model, x, control in _linearization_cases():
         F, c = model.linearize(x, control=control)
         prior = Gaussian(x, torch.eye(6, dtype=F64).expand(len(x), 6, 6) * 1e-4)
         dynamics = model.mode_dynamics(RBPF(model, 16).init(prior), control)
         assert dynamics.mode_log_weight is not None
-        seen_consistent = seen_unsolvable = 0
+        seen_modes += model.num_modes * len(x)
         for b in range(len(x)):
             u = KinematicControl(q=control.q[b], v=control.v[b])
             F_ref, consistent, solvable = _reference_linearization(model, x[b], u)
@@ -280,10 +281,10 @@ def test_linearization_matches_central_differences_of_the_step() -> None:
             torch.testing.assert_close(dynamics.mode_log_weight[b], penalty)
             seen_consistent += int(consistent.sum())
             seen_unsolvable += int((~solvable).sum())
-        # The cases hold consistent modes, inconsistent ones, and modes whose equalities
-        # contradict each other at the point (solve_mode's regularised answer is their step).
-        assert 0 < seen_consistent < model.num_modes * len(x)
-        assert seen_unsolvable > 0
+    # The cases hold consistent modes, inconsistent ones, and modes whose equalities
+    # contradict each other at the point (solve_mode's regularised answer is their step).
+    assert 0 < seen_consistent < seen_modes
+    assert seen_unsolvable > 0
 
 
 def _pushed_box(batch: int, steps: int, seed: int) -> tuple[Scene, Rollout, torch.Tensor]:

@@ -349,8 +349,8 @@ def test_contact_set_validation_names_the_field(name: str, value: object, messag
     ("kwargs", "message"),
     [
         ({"dim": 4, "radius": 0.1, "angle": 0.1}, "dim must be 2"),
-        ({"dim": 2, "radius": 0.0, "angle": 0.1}, "radius must be a finite number > 0"),
-        ({"dim": 2, "radius": 0.1, "angle": math.inf}, "angle must be a finite number > 0"),
+        ({"dim": 2, "radius": 0.0, "angle": 0.1}, "radius: expected a finite number > 0"),
+        ({"dim": 2, "radius": 0.1, "angle": math.inf}, "angle: expected a finite number > 0"),
     ],
 )
 def test_grid_validation(kwargs: dict, message: str) -> None:

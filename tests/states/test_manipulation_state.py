@@ -185,7 +185,7 @@ def test_validation() -> None:
             contact_grid=CONTACT_GRID,
             pose_grid=POSE_GRID,
         )
-    with pytest.raises(ValueError, match="position_step must be a finite number > 0"):
+    with pytest.raises(ValueError, match="position_step: expected a finite number > 0"):
         PoseGrid(dim=2, position_step=0.0, angle_step=0.1)
     with pytest.raises(ValueError, match="pose must hold ints"):
         ManipulationState((0.5,), ContactState())  # type: ignore[arg-type]

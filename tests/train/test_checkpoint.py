@@ -47,6 +47,7 @@ def checkpoint(tmp_path: Path) -> Path:
     return path
 
 
+@pytest.mark.bitwise("a checkpoint reads back the bits it stored")
 def test_save_checkpoint_writes_atomically_and_leaves_no_temporary_file(
     checkpoint: Path,
 ) -> None:

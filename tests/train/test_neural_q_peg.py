@@ -87,6 +87,7 @@ def test_trains_from_the_tabular_run_and_writes_its_artefacts(
     assert state["table"].shape[1] == 7
 
 
+@pytest.mark.bitwise("without training the head holds a copy of the tabular Q")
 def test_the_qmdp_head_stays_the_tabular_q_unless_asked(
     module: ModuleType, tabular_run: Path, straight: dict[str, Any], tmp_path: Path
 ) -> None:
@@ -103,6 +104,7 @@ def test_the_qmdp_head_stays_the_tabular_q_unless_asked(
     assert not torch.equal(last_table(trained["run_dir"]), table)
 
 
+@pytest.mark.bitwise("a resumed run runs the same code on the same inputs in the same process")
 def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
     module: ModuleType, tabular_run: Path, straight: dict[str, Any], tmp_path: Path
 ) -> None:
@@ -130,7 +132,7 @@ def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
         ({"rounds": -1}, r"rounds: expected an int >= 1, got -1"),
         ({"batch_size": 0}, r"batch_size: expected an int >= 1"),
         ({"learning_starts": -1}, r"learning_starts: expected an int >= 0"),
-        ({"learning_rate": 0.0}, r"learning_rate: expected a finite number in \(0.0, inf\]"),
+        ({"learning_rate": 0.0}, r"learning_rate: expected a finite number > 0"),
         ({"epsilon_start": 1.5}, r"epsilon_start: expected a finite number in \[0.0, 1.0\]"),
         ({"final_episodes": 0}, r"final_episodes: expected an int >= 1"),
         ({"name": ""}, r"name: expected a non-empty name"),

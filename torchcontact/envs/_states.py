@@ -14,6 +14,7 @@ from itertools import pairwise
 import torch
 from torch import Tensor
 
+from torchcontact._checks import check_positive
 from torchcontact.states import (
     ContactFeature,
     ContactSet,
@@ -126,9 +127,7 @@ class PegInHoleStates:
 
     def __post_init__(self) -> None:
         for name in ("peg_height", "hole_depth"):
-            value = getattr(self, name)
-            if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+            check_positive(name, getattr(self, name))
         for name in ("x_edges", "y_edges", "angle_edges"):
             edges = tuple(getattr(self, name))
             if not edges or any(b <= a for a, b in pairwise(edges)):

@@ -536,13 +536,38 @@ def linearize_modes(
     pn, tangential = placed.unbind(2)
     phi_all = centre[:, None, :, 0]  # (B, 1, S)
     phi_all = torch.where(table.acting, phi_all - phi_all.clamp(-gap, gap), phi_all)
-    velocity = centre[:, None, :, 1:7].unflatten(-1, (2, 3)) @ v_touch  # (B, K, S, 2, 1)
+    rows_centre = centre[:, None, :, 1:7].unflatten(-1, (2, 3))  # (B, 1, S, 2, 3)
+    velocity = rows_centre @ v_touch  # (B, K, S, 2, 1)
     gap_rate = velocity[..., 0, 0] + centre[:, None, :, 7] + phi_all / h  # (B, K, S)
     slip = velocity[..., 1, 0] + centre[:, None, :, 8]
-    scale = torch.cat([v_free[:, 0, -1, :, 0], centre[..., 7]], dim=-1).abs().amax(-1)
-    scale = torch.maximum(scale[:, None, None], phi_all.abs().amax(-1, keepdim=True) / h)
-    v_tol = consistency_tolerance * (1.0 + scale)
-    p_tol = consistency_tolerance * (1.0 + pn.abs().amax(dim=-1, keepdim=True))
+    # The scales of problem_scales (is_consistent's): velocities the step starts from or the
+    # impulses cause at the candidate slots, the known terms, penetration recovery; momenta.
+    free = v_free[:, :, -1]  # (B, 1, 3, 1)
+    caused = v_touch[:, :, 0] - free  # (B, K, 3, 1): v⁺ − v_free
+    rates = torch.cat(
+        [
+            (rows_centre @ free.unsqueeze(2)).abs().expand(-1, K, -1, -1, -1),
+            (rows_centre @ caused.unsqueeze(2)).abs(),
+        ],
+        dim=-1,
+    ).amax(dim=(-2, -1))  # (B, K, S)
+    known = centre[:, None, :, 7:9].abs().amax(dim=-1)  # (B, 1, S)
+    per_slot = torch.maximum(torch.maximum(rates, known), (-phi_all / h).clamp(min=0.0))
+    per_slot = torch.where(candidate.unsqueeze(1), per_slot, 0.0)
+    tiny = torch.finfo(torch.float64).tiny
+    v_scale = per_slot.amax(dim=-1, keepdim=True).clamp(min=tiny)  # (B, K, 1)
+    mass = layout.inverse_mass.reciprocal()
+    momenta = torch.cat(
+        [
+            (mass * x[:, 3:]).abs().amax(dim=-1)[:, None].expand(-1, K),
+            (mass * layout.gravity_step).abs().amax().expand(B, K),
+            (mass * caused[..., 0]).abs().amax(dim=-1),
+        ]
+    ).view(3, B, K)
+    p_scale = torch.maximum(momenta.amax(dim=0), placed.abs().flatten(-2).amax(dim=-1))
+    p_scale = p_scale.clamp(min=tiny).unsqueeze(-1)  # (B, K, 1)
+    v_tol = consistency_tolerance * v_scale
+    p_tol = consistency_tolerance * p_scale
     mu_pn = layout.mu * pn
     speed = slip.abs()
     stuck = (speed <= v_tol) & (tangential.abs() <= mu_pn + p_tol)
