@@ -118,24 +118,24 @@ def test_step_names_a_bad_control(batch: int, how: str, which: str) -> None:
 def test_negative_physical_parameters_are_named(
     density: float, friction: float, h: Any, mass: float
 ) -> None:
-    with pytest.raises(ValueError, match=r"^density "):
+    with pytest.raises(ValueError, match=r"^density\b"):
         Body("b", Polygon.box(1.0, 0.5), density=density)
-    with pytest.raises(ValueError, match=r"^mass "):
+    with pytest.raises(ValueError, match=r"^mass\b"):
         Body("b", Polygon.box(1.0, 0.5), mass=mass)
-    with pytest.raises(ValueError, match=r"^mass "):
+    with pytest.raises(ValueError, match=r"^mass\b"):
         Body("b", Polygon.box(1.0, 0.5), mass=torch.tensor(mass))
-    with pytest.raises(ValueError, match=r"^friction "):
+    with pytest.raises(ValueError, match=r"^friction\b"):
         _scene(friction=friction)
-    with pytest.raises(ValueError, match=r"^friction "):
+    with pytest.raises(ValueError, match=r"^friction\b"):
         _scene(friction=torch.tensor([friction]))
     with pytest.raises(ValueError, match=r"^pair_friction\["):
         _scene(pair_friction={("box", "ground"): friction})
-    with pytest.raises(ValueError, match=r"^h "):
+    with pytest.raises(ValueError, match=r"^h\b"):
         _scene(h=h)
     q, q_kinematic = _poses(1)
     state = SIM.initial_state(q=q, q_kinematic=q_kinematic)
     if not math.isnan(friction):
-        with pytest.raises(ValueError, match=r"^friction "):
+        with pytest.raises(ValueError, match=r"^friction\b"):
             SIM.step(state, friction=torch.full((1, K), friction, dtype=torch.float64))
 
 
@@ -169,6 +169,7 @@ def test_empty_batches_step_and_roll_out(batch: tuple[int, ...]) -> None:
     assert penetrating.shape == (*batch, K)
 
 
+@pytest.mark.bitwise("a rollout of zero steps returns the initial poses untouched")
 def test_rollout_of_zero_steps_is_the_initial_state() -> None:
     q, q_kinematic = _poses(2)
     state = SIM.initial_state(q=q, q_kinematic=q_kinematic)
@@ -210,10 +211,10 @@ def test_shape_constructors_name_a_bad_size(bad: Any) -> None:
         (lambda: Polygon.regular(5, bad), "radius"),
         (lambda: Polygon.regular(bad, 1.0), "sides"),
     ):
-        with pytest.raises(ValueError, match=rf"^{name} "):
+        with pytest.raises(ValueError, match=rf"^{name}\b"):
             build()
     if not isinstance(bad, float) or not math.isfinite(bad):
-        with pytest.raises(ValueError, match=r"^angle "):
+        with pytest.raises(ValueError, match=r"^angle\b"):
             HalfPlane.ground(angle=bad)
 
 
@@ -221,7 +222,7 @@ def test_shape_constructors_name_a_bad_size(bad: Any) -> None:
 def test_polygon_and_halfplane_name_bad_tensors(how: str) -> None:
     square = Polygon.box(1.0, 1.0).vertices
     point = torch.zeros(2, dtype=torch.float64)
-    with pytest.raises(ValueError, match=r"^vertices "):
+    with pytest.raises(ValueError, match=r"^vertices\b"):
         Polygon(square.T.contiguous() if how == "shape" else _spoil(square, how))
-    with pytest.raises(ValueError, match=r"^point "):
+    with pytest.raises(ValueError, match=r"^point\b"):
         HalfPlane(torch.zeros(3) if how == "shape" else _spoil(point, how), point + 1.0)
