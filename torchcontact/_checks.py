@@ -314,8 +314,8 @@ def check_symmetric_psd(name: str, value: Tensor, *, definite: bool = False) -> 
     Symmetric: ``|A_ij - A_ji| <= tol``. Semi-definite: the Cholesky factorization of
     ``A + tol · I`` succeeds (every eigenvalue ``>= -tol``, up to the factorization's own
     rounding; a zero matrix passes). Definite: the Cholesky factorization of ``A`` itself
-    succeeds (numerically positive definite). Only the failure path computes eigenvalues,
-    for the message.
+    succeeds (numerically positive definite). One host synchronization; only the failure
+    path computes eigenvalues, for the message.
 
     Args:
         name: the argument's name, used in the error message.
@@ -329,31 +329,33 @@ def check_symmetric_psd(name: str, value: Tensor, *, definite: bool = False) -> 
     if value.numel() == 0:
         return
     a = value.detach()
+    n = a.shape[-1]
     tol = symmetric_tolerance(a)
-    excess = (a - a.mT).abs().amax(dim=(-2, -1)) - tol
-    if bool((excess > 0).any()):
-        index = _worst(excess)
+    asymmetric = (a - a.mT).abs().amax(dim=(-2, -1)) > tol
+    if n == 1:  # a scalar variance: no factorization needed
+        indefinite = a[..., 0, 0] <= 0 if definite else a[..., 0, 0] < -tol
+    elif definite:
+        indefinite = torch.linalg.cholesky_ex(a).info != 0
+    else:
+        shift = (tol + torch.finfo(a.dtype).tiny)[..., None, None]
+        eye = torch.eye(n, dtype=a.dtype, device=a.device)
+        indefinite = torch.linalg.cholesky_ex(a + shift * eye).info != 0
+    if not bool((asymmetric | indefinite).any()):
+        return
+    if bool(asymmetric.any()):
+        index = _worst((a - a.mT).abs().amax(dim=(-2, -1)) - tol)
         asym = float((a - a.mT).abs()[index].max())
         raise ValueError(
             f"{name}: must be symmetric (|A - Aᵀ| <= 8·n·eps·max|A|), got a matrix with "
             f"|A - Aᵀ| = {asym:.3g} > {float(tol[index]):.3g}{_at(index)}"
         )
-    shift = 0.0 if definite else torch.finfo(a.dtype).tiny
-    shifted = (
-        a
-        if definite
-        else a
-        + (tol + shift)[..., None, None] * torch.eye(a.shape[-1], dtype=a.dtype, device=a.device)
+    eig = torch.linalg.eigvalsh(a).amin(-1)
+    index = _worst(-eig if definite else -(eig + tol))
+    rule = "positive definite" if definite else "positive semi-definite (eigenvalues >= -tol)"
+    raise ValueError(
+        f"{name}: must be symmetric {rule}, got a matrix with smallest eigenvalue "
+        f"{float(eig[index]):.3g}{_at(index)}"
     )
-    _, info = torch.linalg.cholesky_ex(shifted)
-    if bool((info != 0).any()):
-        eig = torch.linalg.eigvalsh(a).amin(-1)
-        index = _worst(-eig if definite else -(eig + tol))
-        rule = "positive definite" if definite else "positive semi-definite (eigenvalues >= -tol)"
-        raise ValueError(
-            f"{name}: must be symmetric {rule}, got a matrix with smallest eigenvalue "
-            f"{float(eig[index]):.3g}{_at(index)}"
-        )
 
 
 def _worst(score: Tensor) -> tuple[int, ...]:
@@ -364,3 +366,18 @@ def _worst(score: Tensor) -> tuple[int, ...]:
 def _at(index: tuple[int, ...]) -> str:
     """`` at batch index (i, j)`` for a batched value, empty for one matrix."""
     return f" at batch index {index}" if index else ""
+
+
+def all_finite_many(*values: Tensor) -> bool:
+    """Whether every entry of several floating tensors is finite, with one host
+    synchronization: the sum of their sums is finite exactly when no entry is NaN or inf,
+    unless finite sums overflow, when each tensor is tested by :func:`all_finite`."""
+    sums = [value.detach().sum() for value in values if value.numel()]
+    if not sums:
+        return True
+    total = sums[0]
+    for partial in sums[1:]:
+        total = total + partial
+    if bool(torch.isfinite(total)):
+        return True
+    return all(all_finite(value.detach()) for value in values if value.numel())

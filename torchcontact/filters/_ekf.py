@@ -9,6 +9,7 @@ from torch import Tensor
 
 from torchcontact._checks import (
     all_finite,
+    all_finite_many,
     broadcast_batch,
     check_mask,
     check_symmetric_psd,
@@ -109,7 +110,7 @@ def ekf_predict(
     mean, F = _linearize(f, x, args, source=manifold, target=manifold, tangent_dim=dim)
     if mean.shape != x.shape:
         raise ValueError(f"f: must map a state ({n},) to ({n},), got {tuple(mean.shape[1:])}")
-    if not (all_finite(mean.detach()) and all_finite(F.detach())):
+    if not all_finite_many(mean, F):
         raise ValueError("f: returned NaN or inf, or has a NaN or inf Jacobian, at g.mean")
     nb = len(batch)
     F = la.to_batch_last(F.reshape(*batch, dim, dim), 2, nb)
@@ -191,7 +192,7 @@ def ekf_update(
     y_hat, H = _linearize(h, x, (), source=manifold, target=measurement_manifold, tangent_dim=dim)
     if y_hat.shape[1:] != (m,):
         raise ValueError(f"y: h(x) has shape {tuple(y_hat.shape[1:])}, y has ({m},)")
-    if not (all_finite(y_hat.detach()) and all_finite(H.detach())):
+    if not all_finite_many(y_hat, H):
         # not "no measurement": that is a NaN y, never a NaN h(x)
         raise ValueError("h: returned NaN or inf, or has a NaN or inf Jacobian, at g.mean")
     y_flat = y.expand(*batch, m).reshape(-1, m)
@@ -208,14 +209,13 @@ def ekf_update(
         la.to_batch_last(R, 2, nb),
         None if observed is None else la.to_batch_last(observed, 1, nb),
     )
-    finite_likelihood = all_finite(log_lik.detach())
-    if not (finite_likelihood and all_finite(delta.detach()) and all_finite(cov.detach())):
+    if not all_finite_many(log_lik, delta, cov):
         raise update_failure(
             g.mean,
             g.cov,
             H.reshape(*batch, k, dim),
             R,
-            finite_likelihood=finite_likelihood,
+            finite_likelihood=all_finite(log_lik.detach()),
             measurement="h",
         )
     mean = manifold.retract(x, la.to_batch_first(delta, 1).reshape(-1, dim))

@@ -9,6 +9,7 @@ from torch import Tensor
 
 from torchcontact._checks import (
     all_finite,
+    all_finite_many,
     broadcast_batch,
     check_mask,
     check_symmetric_psd,
@@ -212,7 +213,7 @@ def kf_predict(g: Gaussian, *, F: Tensor, c: Tensor | None = None, Q: Tensor) ->
         None if c is None else la.to_batch_last(c, 1, nb),
         la.to_batch_last(Q, 2, nb),
     )
-    if not (all_finite(mean.detach()) and all_finite(cov.detach())):
+    if not all_finite_many(mean, cov):
         raise _prediction_overflow(g, F, c, Q)
     return unchecked_gaussian(
         la.to_batch_first(mean.expand(n, *batch), 1),
@@ -299,9 +300,7 @@ def kf_update(
         la.to_batch_last(R, 2, nb),
         None if observed is None else la.to_batch_last(observed, 1, nb),
     )
-    if not (
-        all_finite(log_lik.detach()) and all_finite(mean.detach()) and all_finite(cov.detach())
-    ):
+    if not all_finite_many(log_lik, mean, cov):
         raise update_failure(g.mean, g.cov, H, R, finite_likelihood=all_finite(log_lik.detach()))
     posterior = unchecked_gaussian(
         la.to_batch_first(mean.expand(n, *batch), 1),
