@@ -381,3 +381,17 @@ def all_finite_many(*values: Tensor) -> bool:
     if bool(torch.isfinite(total)):
         return True
     return all(all_finite(value.detach()) for value in values if value.numel())
+
+
+def check_float_shape(name: str, value: object, *, trailing: Sequence[int], what: str) -> Tensor:
+    """Check that ``value`` is a float32/float64 tensor with the given trailing sizes
+    (``-1`` accepts any), without reading its values: usable under ``torch.func`` transforms
+    (``vmap``, ``jacfwd``), where a test of the values would need a host synchronization.
+
+    Raises:
+        ValueError: ``value`` is not a float32/float64 tensor or its trailing sizes differ.
+    """
+    if not isinstance(value, Tensor) or value.dtype not in FLOAT_DTYPES:
+        raise ValueError(f"{name}: expected a float32 or float64 tensor, got {describe(value)}")
+    check_trailing(name, value, trailing=trailing, what=what)
+    return value

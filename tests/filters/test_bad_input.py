@@ -5,6 +5,7 @@ with an extra batch dim broadcasts like any other batch dim."""
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable
 
 import numpy as np
@@ -14,13 +15,19 @@ from torch import Tensor
 
 from torchcontact.filters import (
     RBPF,
+    SE2,
+    SE3,
     Gaussian,
     LinearSwitchingModel,
+    PlanarContactModel,
     Proposal,
     ekf_predict,
     ekf_update,
     kf_predict,
     kf_update,
+    quat_exp,
+    quat_log,
+    wrap_angle,
 )
 
 
@@ -181,3 +188,53 @@ def test_rbpf_step_validates_the_belief(
     with pytest.raises(ValueError, match=rf"^belief: .*{match}"):
         rbpf.step(bad, torch.zeros(1, dtype=torch.float64))
     assert torch.isfinite(rbpf.step(belief, torch.zeros(1, dtype=torch.float64)).log_evidence).all()
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "match"),
+    [
+        ("Q", lambda K: 1e-4 * torch.eye(6, dtype=torch.float16), r"^Q: expected float32"),
+        ("inconsistency_penalty", lambda K: "5", r"^inconsistency_penalty must be a real"),
+        ("inconsistency_penalty", lambda K: math.nan, r"^inconsistency_penalty must be"),
+        ("consistency_gap", lambda K: None, r"^consistency_gap must be a real"),
+        ("consistency_tolerance", lambda K: math.inf, r"^consistency_tolerance must be"),
+        (
+            "R",
+            lambda K: torch.tensor([[1.0, 2, 0], [0, 1, 0], [0, 0, 1]], dtype=torch.float64),
+            r"^R:",
+        ),
+        ("transition", lambda K: torch.full((K, K), 1.0, dtype=torch.float64), r"^transition:"),
+    ],
+)
+def test_planar_contact_model_refuses_bad_fields(
+    field: str, value: Callable[[int], object], match: str
+) -> None:
+    # Before: a string penalty or gap raised TypeError, a float16 Q was blamed on "F".
+    from tests.filters.test_contact_model import _noise, _scene
+
+    scene = _scene()
+    table = torch.zeros(2, scene.num_slots, dtype=torch.long)
+    fields: dict[str, object] = {"scene": scene, "modes": table, **_noise(2)}
+    fields[field] = value(2)
+    with pytest.raises(ValueError, match=match):
+        PlanarContactModel(**fields)  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize(
+    ("call", "match"),
+    [
+        (lambda: quat_exp(torch.ones(2)), r"^v must have shape \(\*B, 3\)"),
+        (lambda: quat_log(torch.ones(3)), r"^q must have shape \(\*B, 4\)"),
+        (lambda: wrap_angle(torch.tensor([1, 2])), r"^angle: expected a float32 or float64"),
+        (lambda: SE2.retract(torch.zeros(3), torch.zeros(2)), r"^delta must have shape"),
+        (lambda: SE3.retract(torch.zeros(7), torch.zeros(7)), r"^delta must have shape"),
+        (lambda: SE3.local(torch.zeros(6), torch.zeros(6)), r"^x: .*n >= 7"),
+        (lambda: SE2.tangent_dim("3"), r"^dim must be an int"),  # type: ignore[arg-type]
+    ],
+)
+def test_manifold_functions_refuse_wrong_shapes_and_dtypes(
+    call: Callable[[], object], match: str
+) -> None:
+    # Before: garbage results, NaN, RuntimeError or TypeError.
+    with pytest.raises(ValueError, match=match):
+        call()
