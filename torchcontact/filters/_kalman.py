@@ -190,10 +190,16 @@ def kf_predict(g: Gaussian, *, F: Tensor, c: Tensor | None = None, Q: Tensor) ->
         g: belief ``(*B, n)``, Euclidean (``cov`` is ``(*B, n, n)``).
         F: ``(*B', n, n)`` state transition matrix.
         c: ``(*B', n)`` known offset (control input term); zero if None.
-        Q: ``(*B', n, n)`` process noise covariance (symmetric PSD).
+        Q: ``(*B', n, n)`` process noise covariance (symmetric PSD, to the tolerance of
+            :func:`~torchcontact._checks.check_symmetric_psd`).
 
     Returns:
         The predicted Gaussian with the broadcast batch shape.
+
+    Raises:
+        ValueError: a bad argument (named first in the message): wrong type, dtype or shape,
+            NaN or inf, batch shapes that do not broadcast, a ``Q`` that is not symmetric PSD,
+            or finite inputs whose prediction overflows the dtype (``F``, ``c`` or ``Q``).
     """
     g = check_gaussian(g, "g", euclidean=True)
     n = g.dim
@@ -259,13 +265,22 @@ def kf_update(
         y: ``(*B', m)`` measurement.
         H: ``(*B', m, n)`` measurement matrix.
         d: ``(*B', m)`` known measurement offset; zero if None.
-        R: ``(*B', m, m)`` measurement noise covariance (symmetric positive definite on the
-            used components).
+        R: ``(*B', m, m)`` measurement noise covariance: symmetric PSD (to the tolerance of
+            :func:`~torchcontact._checks.check_symmetric_psd`), with ``H P Hᵀ + R`` positive
+            definite on the used components (a singular ``R`` is fine where ``H P Hᵀ`` covers
+            it).
         mask: ``(*B', m)`` bool, ``True`` where the component is used; all if None.
 
     Returns:
         ``(posterior, log_likelihood)`` with the broadcast batch shape ``*B``; the
         log-likelihood ``(*B,)`` is differentiable w.r.t. every input.
+
+    Raises:
+        ValueError: a bad argument (named first in the message): wrong type, dtype or shape,
+            NaN (other than a missing measurement) or inf, batch shapes that do not
+            broadcast, an ``R`` that is not symmetric PSD, ``H P Hᵀ + R`` not positive
+            definite (``R``), or finite inputs whose update overflows the dtype (``H``, ``y``
+            or ``g``).
 
     References:
         R. E. Kalman, "A new approach to linear filtering and prediction problems", J. Basic
