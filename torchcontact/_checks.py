@@ -393,3 +393,116 @@ def check_batched(
     if tensor.numel() and not all_finite(tensor):
         raise ValueError(f"{name} contains NaN or inf")
     return tensor
+
+
+def symmetric_tolerance(value: Tensor) -> Tensor:
+    """The absolute tolerance of :func:`check_symmetric_psd` for each ``(n, n)`` matrix.
+
+    ``8 · n · eps · max|A_ij|`` per matrix, ``eps`` the dtype's machine epsilon: each entry
+    of a covariance computed in floating point (``F P Fᵀ + Q``, a Gram matrix ``A Aᵀ``: sums
+    of ``n`` products) carries a rounding error of up to about ``n · eps`` times the
+    magnitude of its terms (Higham's ``γ_n`` bound), so mirror entries may differ, and a
+    semi-definite matrix's smallest eigenvalue may come out negative, by a few times that
+    much; relative to the matrix's own scale, so that the test does not depend on its units.
+    The factor 8 also covers the backward error of the Cholesky factorization that tests
+    definiteness.
+
+    Args:
+        value: ``(*B, n, n)`` floating tensor.
+
+    Returns:
+        ``(*B,)`` tolerances (0 for a zero matrix).
+    """
+    n = value.shape[-1]
+    eps = torch.finfo(value.dtype).eps
+    return value.detach().abs().amax(dim=(-2, -1)) * (8 * n * eps)
+
+
+def check_symmetric_psd(name: str, value: Tensor, *, definite: bool = False) -> None:
+    """Check that every ``(n, n)`` matrix of a finite ``value`` is symmetric positive
+    semi-definite (positive definite if ``definite``), to :func:`symmetric_tolerance`.
+
+    Symmetric: ``|A_ij - A_ji| <= tol``. Semi-definite: the Cholesky factorization of
+    ``A + tol · I`` succeeds (every eigenvalue ``>= -tol``, up to the factorization's own
+    rounding; a zero matrix passes). Definite: the Cholesky factorization of ``A`` itself
+    succeeds (numerically positive definite). One host synchronization; only the failure
+    path computes eigenvalues, for the message.
+
+    Args:
+        name: the argument's name, used in the error message.
+        value: ``(*B, n, n)`` float32/float64 tensor without NaN or inf.
+        definite: require positive definite rather than semi-definite.
+
+    Raises:
+        ValueError: some matrix is not symmetric, or not positive (semi-)definite; the message
+            gives the worst matrix's batch index and its asymmetry or smallest eigenvalue.
+    """
+    if value.numel() == 0:
+        return
+    a = value.detach()
+    n = a.shape[-1]
+    tol = symmetric_tolerance(a)
+    asymmetric = (a - a.mT).abs().amax(dim=(-2, -1)) > tol
+    if n == 1:  # a scalar variance: no factorization needed
+        indefinite = a[..., 0, 0] <= 0 if definite else a[..., 0, 0] < -tol
+    elif definite:
+        indefinite = torch.linalg.cholesky_ex(a).info != 0
+    else:
+        shift = (tol + torch.finfo(a.dtype).tiny)[..., None, None]
+        eye = torch.eye(n, dtype=a.dtype, device=a.device)
+        indefinite = torch.linalg.cholesky_ex(a + shift * eye).info != 0
+    if not bool((asymmetric | indefinite).any()):
+        return
+    if bool(asymmetric.any()):
+        index = _worst((a - a.mT).abs().amax(dim=(-2, -1)) - tol)
+        asym = float((a - a.mT).abs()[index].max())
+        raise ValueError(
+            f"{name}: must be symmetric (|A - Aᵀ| <= 8·n·eps·max|A|), got a matrix with "
+            f"|A - Aᵀ| = {asym:.3g} > {float(tol[index]):.3g}{_at(index)}"
+        )
+    eig = torch.linalg.eigvalsh(a).amin(-1)
+    index = _worst(-eig if definite else -(eig + tol))
+    rule = "positive definite" if definite else "positive semi-definite (eigenvalues >= -tol)"
+    raise ValueError(
+        f"{name}: must be symmetric {rule}, got a matrix with smallest eigenvalue "
+        f"{float(eig[index]):.3g}{_at(index)}"
+    )
+
+
+def _worst(score: Tensor) -> tuple[int, ...]:
+    """The batch index of the largest entry of ``score (*B)``."""
+    return tuple(int(i) for i in torch.unravel_index(score.argmax(), score.shape))
+
+
+def _at(index: tuple[int, ...]) -> str:
+    """`` at batch index (i, j)`` for a batched value, empty for one matrix."""
+    return f" at batch index {index}" if index else ""
+
+
+def all_finite_many(*values: Tensor) -> bool:
+    """Whether every entry of several floating tensors is finite, with one host
+    synchronization: the sum of their sums is finite exactly when no entry is NaN or inf,
+    unless finite sums overflow, when each tensor is tested by :func:`all_finite`."""
+    sums = [value.detach().sum() for value in values if value.numel()]
+    if not sums:
+        return True
+    total = sums[0]
+    for partial in sums[1:]:
+        total = total + partial
+    if bool(torch.isfinite(total)):
+        return True
+    return all(all_finite(value.detach()) for value in values if value.numel())
+
+
+def check_float_shape(name: str, value: object, *, trailing: Sequence[int], what: str) -> Tensor:
+    """Check that ``value`` is a float32/float64 tensor with the given trailing sizes
+    (``-1`` accepts any), without reading its values: usable under ``torch.func`` transforms
+    (``vmap``, ``jacfwd``), where a test of the values would need a host synchronization.
+
+    Raises:
+        ValueError: ``value`` is not a float32/float64 tensor or its trailing sizes differ.
+    """
+    if not isinstance(value, Tensor) or value.dtype not in FLOAT_DTYPES:
+        raise ValueError(f"{name}: expected a float32 or float64 tensor, got {describe(value)}")
+    check_trailing(name, value, trailing=trailing, what=what)
+    return value

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -9,7 +10,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcontact._checks import describe
+from torchcontact._checks import FLOAT_DTYPES, check_real, describe
 from torchcontact.contact import solve_mode
 from torchcontact.filters._compiled import kernel
 from torchcontact.filters._planar_linearization import (
@@ -177,17 +178,18 @@ class PlanarContactModel:
             raise ValueError(f"modes: values must lie in [0, {PLANAR_MODES})")
         if not isinstance(self.fd_step, float) or not 0.0 < self.fd_step < 1e-2:
             raise ValueError(f"fd_step: expected a float in (0, 0.01), got {self.fd_step!r}")
-        if not self.inconsistency_penalty >= 0.0:
-            raise ValueError(
-                f"inconsistency_penalty: expected a number >= 0, got {self.inconsistency_penalty!r}"
-            )
-        if not self.consistency_gap >= 0.0:
-            raise ValueError(f"consistency_gap: expected >= 0, got {self.consistency_gap!r}")
-        if not 0.0 < self.consistency_tolerance < 1.0:
-            raise ValueError(
-                f"consistency_tolerance: expected a number in (0, 1), got "
-                f"{self.consistency_tolerance!r}"
-            )
+        penalty = self.inconsistency_penalty
+        if penalty != math.inf:  # inf rules inconsistent modes out
+            check_real("inconsistency_penalty", penalty, low=0.0)
+        check_real("consistency_gap", self.consistency_gap, low=0.0)
+        check_real(
+            "consistency_tolerance",
+            self.consistency_tolerance,
+            low=0.0,
+            high=1.0,
+            low_open=True,
+            high_open=True,
+        )
         if not isinstance(self.compiled, bool):
             raise ValueError(f"compiled: expected a bool, got {self.compiled!r}")
         K = int(modes.shape[0])
@@ -200,6 +202,8 @@ class PlanarContactModel:
                     f"{name}: expected shape {' or '.join(map(str, shapes))}, got "
                     f"{tuple(getattr(value, 'shape', ()))}"
                 )
+            if value.dtype not in FLOAT_DTYPES:  # before F's zeros take Q's dtype below
+                raise ValueError(f"{name}: expected float32 or float64, got dtype {value.dtype}")
         # The remaining checks (dtypes, finiteness, PSD noise, stochastic transition and
         # initial) are those of a linear switching model with the same noise and transition.
         dtype = self.Q.dtype

@@ -7,10 +7,17 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from torchcontact._checks import broadcast_batch, check_mask, check_tensor
+from torchcontact._checks import (
+    all_finite,
+    all_finite_many,
+    broadcast_batch,
+    check_mask,
+    check_symmetric_psd,
+    check_tensor,
+)
 from torchcontact.filters import _linalg as la
 from torchcontact.filters._gaussian import Gaussian, check_gaussian, unchecked_gaussian
-from torchcontact.filters._kalman import observed_components, update_core
+from torchcontact.filters._kalman import observed_components, update_core, update_failure
 from torchcontact.filters._manifold import EUCLIDEAN, Manifold
 
 Dynamics = Callable[..., Tensor]
@@ -90,6 +97,7 @@ def ekf_predict(
     manifold = _check_manifold(manifold, "manifold")
     g, n, dim = _check_state(g, manifold)
     Q = check_tensor("Q", Q, event_shape=(dim, dim), like=g.mean)
+    check_symmetric_psd("Q", Q)
     shapes = [("g", g.batch_shape), ("Q", Q.shape[:-2])]
     if u is not None:
         if not isinstance(u, Tensor) or u.ndim < 1:
@@ -102,10 +110,17 @@ def ekf_predict(
     mean, F = _linearize(f, x, args, source=manifold, target=manifold, tangent_dim=dim)
     if mean.shape != x.shape:
         raise ValueError(f"f: must map a state ({n},) to ({n},), got {tuple(mean.shape[1:])}")
+    if not all_finite_many(mean, F):
+        raise ValueError("f: returned NaN or inf, or has a NaN or inf Jacobian, at g.mean")
     nb = len(batch)
     F = la.to_batch_last(F.reshape(*batch, dim, dim), 2, nb)
     P = la.to_batch_last(g.cov, 2, nb)
     cov = la.symmetrize(la.add_(la.mm_t(la.mm(F, P), F), la.to_batch_last(Q, 2, nb)))
+    if not all_finite(cov.detach()):
+        raise ValueError(
+            f"f: the prediction F P Fᵀ + Q overflows {g.dtype} with f's Jacobian F (largest "
+            f"|F| = {float(F.abs().max()):.3g}, |g.cov| = {float(g.cov.abs().max()):.3g})"
+        )
     return unchecked_gaussian(
         mean.reshape(*batch, n), la.to_batch_first(cov.expand(dim, dim, *batch), 2)
     )
@@ -166,6 +181,7 @@ def ekf_update(
     y = check_tensor("y", y, event_shape=(m,), like=g.mean, allow_nan=True)
     k = measurement_manifold.tangent_dim(m)
     R = check_tensor("R", R, event_shape=(k, k), like=g.mean)
+    check_symmetric_psd("R", R)
     shapes = [("g", g.batch_shape), ("y", y.shape[:-1]), ("R", R.shape[:-2])]
     if mask is not None:
         mask = check_mask("mask", mask, size=k)
@@ -176,6 +192,9 @@ def ekf_update(
     y_hat, H = _linearize(h, x, (), source=manifold, target=measurement_manifold, tangent_dim=dim)
     if y_hat.shape[1:] != (m,):
         raise ValueError(f"y: h(x) has shape {tuple(y_hat.shape[1:])}, y has ({m},)")
+    if not all_finite_many(y_hat, H):
+        # not "no measurement": that is a NaN y, never a NaN h(x)
+        raise ValueError("h: returned NaN or inf, or has a NaN or inf Jacobian, at g.mean")
     y_flat = y.expand(*batch, m).reshape(-1, m)
     missing = torch.isnan(y_flat).all(-1, keepdim=True)
     residual = measurement_manifold.local(y_hat, torch.where(missing, y_hat, y_flat))
@@ -190,14 +209,21 @@ def ekf_update(
         la.to_batch_last(R, 2, nb),
         None if observed is None else la.to_batch_last(observed, 1, nb),
     )
-    if not bool(torch.isfinite(log_lik).all()):
-        raise ValueError(
-            "R: the innovation covariance H P Hᵀ + R is not positive definite (check R and g.cov)"
+    if not all_finite_many(log_lik, delta, cov):
+        raise update_failure(
+            g.mean,
+            g.cov,
+            H.reshape(*batch, k, dim),
+            R,
+            finite_likelihood=all_finite(log_lik.detach()),
+            measurement="h",
         )
     mean = manifold.retract(x, la.to_batch_first(delta, 1).reshape(-1, dim))
     if observed is not None:
         unchanged = ~observed.expand(*batch, k).reshape(-1, k).any(-1, keepdim=True)
         mean = torch.where(unchanged, x, mean)
+    if not all_finite(mean.detach()):
+        raise ValueError(f"g: the posterior mean overflows {g.dtype} (manifold.retract(μ, K r))")
     posterior = unchecked_gaussian(
         mean.reshape(*batch, n), la.to_batch_first(cov.expand(dim, dim, *batch), 2)
     )

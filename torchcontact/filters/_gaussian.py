@@ -8,6 +8,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from torchcontact._checks import FLOAT_DTYPES, all_finite, check_symmetric_psd
+
 
 @dataclass(frozen=True, eq=False)
 class Gaussian:
@@ -24,7 +26,9 @@ class Gaussian:
         mean: ``(*B, n)`` mean, in the frame of the model that produced it.
         cov: ``(*B, d, d)`` covariance (symmetric positive semi-definite), same dtype/device.
 
-    Construction validates shapes, dtype (floating point, shared) and finiteness and raises
+    Construction validates shapes, dtype (float32 or float64, shared), finiteness, and that
+    ``cov`` is symmetric positive semi-definite to a tolerance relative to its scale and the
+    dtype's epsilon (:func:`~torchcontact._checks.check_symmetric_psd`), and raises
     ``ValueError`` naming the field at fault. Indexing ``g[idx]`` indexes the batch dims only
     (any torch index: ints, slices, ``...``, ``None``, bool or long tensors).
     """
@@ -37,8 +41,8 @@ class Gaussian:
         for name, value in (("mean", mean), ("cov", cov)):
             if not isinstance(value, Tensor):
                 raise ValueError(f"{name}: expected a torch.Tensor, got {type(value).__name__}")
-            if not value.is_floating_point():
-                raise ValueError(f"{name}: expected a floating-point tensor, got {value.dtype}")
+            if value.dtype not in FLOAT_DTYPES:
+                raise ValueError(f"{name}: expected float32 or float64, got dtype {value.dtype}")
         if cov.dtype != mean.dtype or cov.device != mean.device:
             raise ValueError(
                 f"cov: dtype/device {cov.dtype}/{cov.device} differ from mean's "
@@ -57,8 +61,9 @@ class Gaussian:
                 f"1 <= d <= n = {mean.shape[-1]}, got {tuple(cov.shape)}"
             )
         for name, value in (("mean", mean), ("cov", cov)):
-            if not bool(torch.isfinite(value).all()):
+            if value.numel() and not all_finite(value.detach()):
                 raise ValueError(f"{name}: contains NaN or inf")
+        check_symmetric_psd("cov", cov)
 
     @property
     def batch_shape(self) -> torch.Size:

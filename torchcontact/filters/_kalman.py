@@ -7,7 +7,14 @@ import math
 import torch
 from torch import Tensor
 
-from torchcontact._checks import broadcast_batch, check_mask, check_tensor
+from torchcontact._checks import (
+    all_finite,
+    all_finite_many,
+    broadcast_batch,
+    check_mask,
+    check_symmetric_psd,
+    check_tensor,
+)
 from torchcontact.filters import _linalg as la
 from torchcontact.filters._gaussian import Gaussian, check_gaussian, unchecked_gaussian
 
@@ -81,7 +88,11 @@ def update_core(
     HP = la.mm_t(HC, root)
     low = la.Cholesky(la.add_(la.mm_t(HC, HC), R))  # S = L Lᵀ
     # One forward substitution for [H P | r]: W = L⁻¹ H P and the whitened residual z = L⁻¹ r.
-    solved = low.solve(torch.cat([HP, residual.unsqueeze(1)], dim=1))
+    rhs = [HP, residual.unsqueeze(1)]
+    if HP.shape[2:] != residual.shape[1:]:  # y with batch dims that P and H lack, or vice versa
+        batch = [max(a, b) for a, b in zip(HP.shape[2:], residual.shape[1:], strict=True)]
+        rhs = [HP.expand(k, n, *batch), residual.unsqueeze(1).expand(k, 1, *batch)]
+    solved = low.solve(torch.cat(rhs, dim=1))
     z = solved[:, n]
     gain_t = low.solve_transpose(solved[:, :n])  # Kᵀ = S⁻¹ H P, (k, n, *B)
     num_obs: float | Tensor = float(k) if observed is None else observed.sum(0).to(mean.dtype)
@@ -179,15 +190,22 @@ def kf_predict(g: Gaussian, *, F: Tensor, c: Tensor | None = None, Q: Tensor) ->
         g: belief ``(*B, n)``, Euclidean (``cov`` is ``(*B, n, n)``).
         F: ``(*B', n, n)`` state transition matrix.
         c: ``(*B', n)`` known offset (control input term); zero if None.
-        Q: ``(*B', n, n)`` process noise covariance (symmetric PSD).
+        Q: ``(*B', n, n)`` process noise covariance (symmetric PSD, to the tolerance of
+            :func:`~torchcontact._checks.check_symmetric_psd`).
 
     Returns:
         The predicted Gaussian with the broadcast batch shape.
+
+    Raises:
+        ValueError: a bad argument (named first in the message): wrong type, dtype or shape,
+            NaN or inf, batch shapes that do not broadcast, a ``Q`` that is not symmetric PSD,
+            or finite inputs whose prediction overflows the dtype (``F``, ``c`` or ``Q``).
     """
     g = check_gaussian(g, "g", euclidean=True)
     n = g.dim
     F = check_tensor("F", F, event_shape=(n, n), like=g.mean)
     Q = check_tensor("Q", Q, event_shape=(n, n), like=g.mean)
+    check_symmetric_psd("Q", Q)
     shapes = [("g", g.batch_shape), ("F", F.shape[:-2]), ("Q", Q.shape[:-2])]
     if c is not None:
         c = check_tensor("c", c, event_shape=(n,), like=g.mean)
@@ -201,6 +219,8 @@ def kf_predict(g: Gaussian, *, F: Tensor, c: Tensor | None = None, Q: Tensor) ->
         None if c is None else la.to_batch_last(c, 1, nb),
         la.to_batch_last(Q, 2, nb),
     )
+    if not all_finite_many(mean, cov):
+        raise _prediction_overflow(g, F, c, Q)
     return unchecked_gaussian(
         la.to_batch_first(mean.expand(n, *batch), 1),
         la.to_batch_first(cov.expand(n, n, *batch), 2),
@@ -245,13 +265,22 @@ def kf_update(
         y: ``(*B', m)`` measurement.
         H: ``(*B', m, n)`` measurement matrix.
         d: ``(*B', m)`` known measurement offset; zero if None.
-        R: ``(*B', m, m)`` measurement noise covariance (symmetric positive definite on the
-            used components).
+        R: ``(*B', m, m)`` measurement noise covariance: symmetric PSD (to the tolerance of
+            :func:`~torchcontact._checks.check_symmetric_psd`), with ``H P Hᵀ + R`` positive
+            definite on the used components (a singular ``R`` is fine where ``H P Hᵀ`` covers
+            it).
         mask: ``(*B', m)`` bool, ``True`` where the component is used; all if None.
 
     Returns:
         ``(posterior, log_likelihood)`` with the broadcast batch shape ``*B``; the
         log-likelihood ``(*B,)`` is differentiable w.r.t. every input.
+
+    Raises:
+        ValueError: a bad argument (named first in the message): wrong type, dtype or shape,
+            NaN (other than a missing measurement) or inf, batch shapes that do not
+            broadcast, an ``R`` that is not symmetric PSD, ``H P Hᵀ + R`` not positive
+            definite (``R``), or finite inputs whose update overflows the dtype (``H``, ``y``
+            or ``g``).
 
     References:
         R. E. Kalman, "A new approach to linear filtering and prediction problems", J. Basic
@@ -266,6 +295,7 @@ def kf_update(
     y = check_tensor("y", y, event_shape=(k,), like=g.mean, allow_nan=True)
     H = check_tensor("H", H, event_shape=(k, n), like=g.mean)
     R = check_tensor("R", R, event_shape=(k, k), like=g.mean)
+    check_symmetric_psd("R", R)
     shapes = [("g", g.batch_shape), ("y", y.shape[:-1]), ("H", H.shape[:-2]), ("R", R.shape[:-2])]
     if d is not None:
         d = check_tensor("d", d, event_shape=(k,), like=g.mean)
@@ -285,10 +315,8 @@ def kf_update(
         la.to_batch_last(R, 2, nb),
         None if observed is None else la.to_batch_last(observed, 1, nb),
     )
-    if not bool(torch.isfinite(log_lik).all()):
-        raise ValueError(
-            "R: the innovation covariance H P Hᵀ + R is not positive definite (check R and g.cov)"
-        )
+    if not all_finite_many(log_lik, mean, cov):
+        raise update_failure(g.mean, g.cov, H, R, finite_likelihood=all_finite(log_lik.detach()))
     posterior = unchecked_gaussian(
         la.to_batch_first(mean.expand(n, *batch), 1),
         la.to_batch_first(cov.expand(n, n, *batch), 2),
@@ -308,3 +336,62 @@ def _mask_unobserved(
         d = torch.where(observed, d, 0.0)
     both = observed.unsqueeze(1) & observed.unsqueeze(0)
     return H, y, d, torch.where(both, R, la.eye(k, batch_ndim, R))
+
+
+def _prediction_overflow(g: Gaussian, F: Tensor, c: Tensor | None, Q: Tensor) -> ValueError:
+    """The error of a prediction from finite inputs that overflowed, naming the input that
+    made it overflow: ``F`` when ``F μ`` or ``F P Fᵀ`` does, else ``c`` or ``Q`` (failure path
+    only; shapes as in :func:`kf_predict`)."""
+    Fm = (F @ g.mean.unsqueeze(-1)).squeeze(-1)
+    if not (all_finite(Fm) and all_finite(F @ g.cov @ F.mT)):
+        name = "F"
+    elif c is not None and not all_finite(Fm + c):
+        name = "c"
+    else:
+        name = "Q"
+    return ValueError(
+        f"{name}: the prediction F μ + c, F P Fᵀ + Q overflows {g.dtype} (largest |F| = "
+        f"{float(F.abs().max()):.3g}, |g.mean| = {float(g.mean.abs().max()):.3g}, |g.cov| = "
+        f"{float(g.cov.abs().max()):.3g})"
+    )
+
+
+def update_failure(
+    mean: Tensor,
+    cov: Tensor,
+    H: Tensor,
+    R: Tensor,
+    *,
+    finite_likelihood: bool,
+    measurement: str = "H",
+) -> ValueError:
+    """The error of a Kalman update from finite inputs whose result is not finite (failure
+    path only): ``R`` when the innovation covariance ``S = H P Hᵀ + R`` is not positive
+    definite, ``H`` (``measurement``) when it overflows, else ``y`` (the residual
+    overflowed) or, with a finite likelihood, ``g`` (the posterior overflowed).
+
+    Args:
+        mean: ``(*B, n)`` prior mean; cov: ``(*B, n, n)`` prior covariance; H: ``(*B', k, n)``;
+            R: ``(*B', k, k)``.
+        finite_likelihood: whether the update's log-likelihood was finite.
+        measurement: the name of the argument that gave ``H`` (``"h"`` for the EKF).
+    """
+    S = H @ cov @ H.mT + R
+    if not all_finite(S):
+        return ValueError(
+            f"{measurement}: the innovation covariance H P Hᵀ + R overflows {mean.dtype} "
+            f"(largest |H| = {float(H.abs().max()):.3g}, |g.cov| = {float(cov.abs().max()):.3g})"
+        )
+    if bool((torch.linalg.cholesky_ex(S).info != 0).any()):
+        return ValueError(
+            "R: the innovation covariance H P Hᵀ + R is not positive definite (check R and g.cov)"
+        )
+    if not finite_likelihood:
+        return ValueError(
+            f"y: the residual y - H μ - d or its likelihood overflows {mean.dtype} (largest "
+            f"|g.mean| = {float(mean.abs().max()):.3g})"
+        )
+    return ValueError(
+        f"g: the posterior overflows {mean.dtype} (largest |g.mean| = "
+        f"{float(mean.abs().max()):.3g}, |g.cov| = {float(cov.abs().max()):.3g})"
+    )

@@ -9,6 +9,7 @@ from typing import Final, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
+from torchcontact._checks import check_float_shape, check_int
 from torchcontact.geometry import quat_mul
 
 
@@ -39,27 +40,42 @@ class Manifold(Protocol):
         ...
 
 
+def _sizes(manifold: Manifold, x: object) -> tuple[int, int]:
+    """The sizes ``(n, d)`` of a point ``x`` ``(*B, n)`` of ``manifold`` and of its tangent
+    (shapes only: usable under ``torch.func`` transforms).
+
+    Raises:
+        ValueError: ``x`` is not a float32/float64 tensor or ``n`` does not fit the manifold.
+    """
+    n = int(check_float_shape("x", x, trailing=(-1,), what="(*B, n)").shape[-1])
+    try:
+        return n, manifold.tangent_dim(n)
+    except ValueError as err:
+        raise ValueError(f"x: {err}") from err
+
+
 @dataclass(frozen=True)
 class Euclidean:
     """Flat space ``R^n``: ``retract(x, δ) = x + δ``, ``local(x, y) = y - x``."""
 
     def tangent_dim(self, dim: int) -> int:
         """``d = n``."""
-        if dim < 1:
-            raise ValueError(f"dim: a Euclidean state needs n >= 1, got {dim}")
-        return dim
+        return check_int("dim", dim, low=1)
 
     def retract(self, x: Tensor, delta: Tensor) -> Tensor:
         """``x + δ``."""
-        return x + delta
+        _, d = _sizes(self, x)
+        return x + check_float_shape("delta", delta, trailing=(d,), what=f"(*B, {d})")
 
     def local(self, x: Tensor, y: Tensor) -> Tensor:
         """``y - x``."""
-        return y - x
+        n, _ = _sizes(self, x)
+        return check_float_shape("y", y, trailing=(n,), what=f"(*B, {n})") - x
 
 
 def wrap_angle(angle: Tensor) -> Tensor:
     """Wrap angles to ``(-π, π]`` (differentiable, slope 1)."""
+    angle = check_float_shape("angle", angle, trailing=(), what="(*B)")
     return torch.atan2(torch.sin(angle), torch.cos(angle))
 
 
@@ -76,18 +92,20 @@ class SE2Pose:
 
     def tangent_dim(self, dim: int) -> int:
         """``d = n`` (``n >= 3``)."""
-        if dim < 3:
+        if check_int("dim", dim, low=1) < 3:
             raise ValueError(f"dim: an SE(2) pose needs n >= 3 (x, y, θ, ...), got {dim}")
         return dim
 
     def retract(self, x: Tensor, delta: Tensor) -> Tensor:
         """Add ``δ`` and wrap the heading."""
-        out = x + delta
+        _, d = _sizes(self, x)
+        out = x + check_float_shape("delta", delta, trailing=(d,), what=f"(*B, {d})")
         return torch.cat([out[..., :2], wrap_angle(out[..., 2:3]), out[..., 3:]], dim=-1)
 
     def local(self, x: Tensor, y: Tensor) -> Tensor:
         """Subtract and wrap the heading difference."""
-        diff = y - x
+        n, _ = _sizes(self, x)
+        diff = check_float_shape("y", y, trailing=(n,), what=f"(*B, {n})") - x
         return torch.cat([diff[..., :2], wrap_angle(diff[..., 2:3]), diff[..., 3:]], dim=-1)
 
 
@@ -103,6 +121,7 @@ def _small(sq: Tensor) -> Tensor:
 
 def quat_exp(v: Tensor) -> Tensor:
     """Unit quaternion of the rotation vector ``v`` ``(*B, 3)`` (radians) → ``(*B, 4)``."""
+    v = check_float_shape("v", v, trailing=(3,), what="(*B, 3)")
     sq = (v * v).sum(-1, keepdim=True)
     small = _small(sq)
     theta = torch.sqrt(torch.where(small, torch.ones_like(sq), sq))  # safe: finite gradients
@@ -114,6 +133,7 @@ def quat_exp(v: Tensor) -> Tensor:
 
 def quat_log(q: Tensor) -> Tensor:
     """Rotation vector ``(*B, 3)`` of the unit quaternion ``q`` ``(*B, 4)``, angle in ``[0, π]``."""
+    q = check_float_shape("q", q, trailing=(4,), what="(*B, 4)")
     q = torch.where(q[..., :1] < 0, -q, q)  # shortest rotation of the double cover
     w, v = q[..., :1], q[..., 1:]
     sq = (v * v).sum(-1, keepdim=True)
@@ -145,18 +165,22 @@ class SE3Pose:
 
     def tangent_dim(self, dim: int) -> int:
         """``d = n - 1`` (``n >= 7``)."""
-        if dim < 7:
+        if check_int("dim", dim, low=1) < 7:
             raise ValueError(f"dim: an SE(3) pose needs n >= 7 (position, quaternion), got {dim}")
         return dim - 1
 
     def retract(self, x: Tensor, delta: Tensor) -> Tensor:
         """``(p + δp, q ⊗ Exp(δθ), v + δv)``."""
+        _, d = _sizes(self, x)
+        check_float_shape("delta", delta, trailing=(d,), what=f"(*B, {d})")
         q = quat_mul(x[..., 3:7], quat_exp(delta[..., 3:6]))
         q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
         return torch.cat([x[..., :3] + delta[..., :3], q, x[..., 7:] + delta[..., 6:]], dim=-1)
 
     def local(self, x: Tensor, y: Tensor) -> Tensor:
         """``(p_y - p_x, Log(q_x⁻¹ ⊗ q_y), v_y - v_x)``."""
+        n, _ = _sizes(self, x)
+        check_float_shape("y", y, trailing=(n,), what=f"(*B, {n})")
         rot = quat_log(quat_mul(quat_conj(x[..., 3:7]), y[..., 3:7]))
         return torch.cat([y[..., :3] - x[..., :3], rot, y[..., 7:] - x[..., 7:]], dim=-1)
 

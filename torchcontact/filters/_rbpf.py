@@ -474,8 +474,11 @@ class RBPF:
         model, N, K = self.model, self.num_particles, self.model.num_modes
         batch = belief.batch_shape
         if rows is None:
+            # Modes out of [0, K) are flagged by the step (:func:`_belief_flags`); clamped here
+            # so that the step reaches its one flag read.
+            modes = belief.modes.clamp(0, K - 1)
             return transition.expand(*batch, K, K).gather(
-                -2, belief.modes.unsqueeze(-1).expand(*batch, N, K)
+                -2, modes.unsqueeze(-1).expand(*batch, N, K)
             )
         rows = check_tensor(
             "model: mode_dynamics().transition_rows", rows, event_shape=(N, K), like=model.initial
@@ -618,6 +621,7 @@ class RBPF:
             belief.log_weights,
             belief.log_evidence,
             belief.history,
+            belief.modes,
             n=model.state_dim,
             m=model.obs_dim,
             measured=self._measured(observed),
@@ -662,7 +666,12 @@ class RBPF:
             if weight is not None:
                 log_w = log_w + weight.unsqueeze(-2)
         log_w, log_evidence, dead, invalid = _normalized(log_w.flatten(-2), belief.log_evidence)
-        flags = _flags(invalid, dead, *_dynamics_flags(packed, shared, mode_log_weight))
+        flags = _flags(
+            invalid,
+            dead,
+            *_dynamics_flags(packed, shared, mode_log_weight),
+            _belief_flags(belief.modes, belief.log_weights, belief.log_evidence, K),
+        )
         any_dead = _read_flags(flags)[_DEAD]
         index, log_w = optimal_resample_core(log_w, N, generator)
         modes = index % K
@@ -799,6 +808,8 @@ class RBPF:
         if not isinstance(belief, RBPFBelief):
             raise ValueError(f"belief: expected an RBPFBelief, got {type(belief).__name__}")
         g = belief.gaussians
+        if not isinstance(belief.modes, Tensor) or belief.modes.dtype != torch.long:
+            raise ValueError(f"belief: modes must be a long tensor, got {describe(belief.modes)}")
         if (
             belief.num_modes != model.num_modes
             or belief.num_particles != self.num_particles
@@ -903,6 +914,7 @@ def _bootstrap_core(
     log_weights: Tensor,
     log_evidence: Tensor,
     history: Tensor,
+    previous_modes: Tensor,
     *,
     n: int,
     m: int,
@@ -921,7 +933,8 @@ def _bootstrap_core(
             fields every mode shares; mode_log_weight: ``(*B', K)`` or None, the model's.
         mean: ``(n, *B, N)``; cov: ``(n, n, *B, N)``: the particles, batch-last.
         y, observed: batch-last (:func:`_measurement`); extra: ``(*B', K)`` or None.
-        log_weights: ``(*B, N)``; log_evidence: ``(*B,)``; history: ``(*B, N, L + 1)``.
+        log_weights: ``(*B, N)``; log_evidence: ``(*B,)``; history: ``(*B, N, L + 1)``;
+            previous_modes: ``(*B, N)``: the given belief's (tested by :func:`_belief_flags`).
         n, m, measured, entrywise: as in :func:`_predict_update`.
         log_ess_bound: resample where ``log Σ w² >`` this (``-log(threshold · N)``).
 
@@ -942,6 +955,7 @@ def _bootstrap_core(
         measured=measured,
         entrywise=entrywise,
     )
+    belief_flags = _belief_flags(previous_modes, log_weights, log_evidence, packed.shape[-2])
     log_w = log_weights + log_lik
     for weight in (extra, mode_log_weight):
         if weight is not None:
@@ -950,7 +964,13 @@ def _bootstrap_core(
     history = torch.cat([modes.unsqueeze(-1), history[..., :-1]], -1)
     # ESS = 1 / Σ w² < threshold · N, in log space
     resample = (torch.logsumexp(2.0 * log_w, -1) > log_ess_bound) & ~dead
-    flags = _flags(invalid, dead, *_dynamics_flags(packed, shared, mode_log_weight), resample)
+    flags = _flags(
+        invalid,
+        dead,
+        *_dynamics_flags(packed, shared, mode_log_weight),
+        belief_flags,
+        resample,
+    )
     return log_w, mean, cov, log_evidence, history, dead, resample, flags
 
 
@@ -959,7 +979,7 @@ def _select(packed: Tensor, modes: Tensor) -> Tensor:
     ``packed (K, D)`` (one set for the whole batch: one index_select) or ``(*B', K, D)``."""
     batch, N = modes.shape[:-1], modes.shape[-1]
     if packed.ndim == 2:
-        return packed.T.index_select(1, modes.reshape(-1)).reshape(-1, *batch, N)
+        return packed.T.index_select(1, modes.reshape(-1)).reshape(packed.shape[-1], *batch, N)
     params = packed.expand(*batch, *packed.shape[-2:]).gather(
         -2, modes.unsqueeze(-1).expand(*batch, N, packed.shape[-1])
     )
@@ -1035,7 +1055,21 @@ def _normalized(log_w: Tensor, log_evidence: Tensor) -> tuple[Tensor, Tensor, Te
 
 
 # Entries of a step's flags (:func:`_flags`).
-_INVALID, _DEAD, _BAD_DYNAMICS, _BAD_MODE_WEIGHT, _RESAMPLE = range(5)
+_INVALID, _DEAD, _BAD_DYNAMICS, _BAD_MODE_WEIGHT, _BAD_WEIGHTS, _BAD_MODES, _RESAMPLE = range(7)
+
+
+def _belief_flags(modes: Tensor, log_weights: Tensor, log_evidence: Tensor, K: int) -> Tensor:
+    """Whether the belief given to a step holds NaN or ``+inf`` log-weights or evidence, and
+    whether its modes leave ``[0, K)``: ``(2,)`` bool, no synchronization (the step reads it
+    with its other flags).
+
+    Args:
+        modes: ``(*B, N)`` long; log_weights: ``(*B, N)``; log_evidence: ``(*B,)``.
+        K: the number of modes.
+    """
+    # x < inf is False exactly for NaN and +inf
+    bad_weights = ~((log_weights < math.inf).all() & (log_evidence < math.inf).all())
+    return torch.stack([bad_weights, ((modes < 0) | (modes >= K)).any()])
 
 
 def _dynamics_flags(
@@ -1056,20 +1090,26 @@ def _flags(
     dead: Tensor,
     bad_dynamics: Tensor,
     bad_mode_weight: Tensor,
+    belief_flags: Tensor,
     resample: Tensor | None = None,
 ) -> Tensor:
-    """A step's ``(5,)`` bool flags (indexed by ``_INVALID`` …): any NaN/+inf weight
-    increment, any dead entry, the model's dynamics and mode log-weights bad, any entry to
-    resample (False if ``resample`` is None)."""
+    """A step's ``(7,)`` bool flags (indexed by ``_INVALID`` …): any NaN/+inf weight
+    increment, any dead entry, the model's dynamics and mode log-weights bad, the given
+    belief's :func:`_belief_flags`, any entry to resample (False if ``resample`` is None)."""
     wanted = resample.any() if resample is not None else torch.zeros_like(bad_dynamics)
-    return torch.stack([invalid.any(), dead.any(), bad_dynamics, bad_mode_weight, wanted])
+    head = torch.stack([invalid.any(), dead.any(), bad_dynamics, bad_mode_weight])
+    return torch.cat([head, belief_flags, wanted.unsqueeze(0)])
 
 
 def _read_flags(flags: Tensor) -> list[bool]:
     """A step's :func:`_flags` read (one host synchronization), raising the error they call
     for."""
     read: list[bool] = flags.tolist()
-    # The model's faults come first: they make the weights NaN too.
+    # The given belief's and the model's faults come first: they make the weights NaN too.
+    if read[_BAD_WEIGHTS]:
+        raise ValueError("belief: log_weights and log_evidence must not hold NaN or +inf")
+    if read[_BAD_MODES]:
+        raise ValueError("belief: modes must lie in [0, K), the model's modes")
     if read[_BAD_MODE_WEIGHT]:
         raise ValueError("model: mode_dynamics().mode_log_weight: contains NaN or +inf")
     if read[_BAD_DYNAMICS]:

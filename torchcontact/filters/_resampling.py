@@ -7,6 +7,8 @@ from typing import Any, Literal, get_args
 import torch
 from torch import Tensor
 
+from torchcontact._checks import FLOAT_DTYPES, describe
+
 ResamplingMethod = Literal["multinomial", "systematic", "stratified", "residual"]
 RESAMPLING_METHODS: tuple[str, ...] = get_args(ResamplingMethod)
 
@@ -70,14 +72,18 @@ def resample_indices(
     return torch.where(slots < num_copies, deterministic.clamp(max=n - 1), random)
 
 
-def _check_log_weights(log_weights: object, name: str) -> Tensor:
-    if not isinstance(log_weights, Tensor) or not log_weights.is_floating_point():
-        raise ValueError(f"{name}: expected a floating-point tensor, got {type(log_weights)}")
+def _check_log_weights(log_weights: object, name: str, *, allow_dead: bool = False) -> Tensor:
+    """Check ``(*B, N)`` float32/float64 log-weights without NaN or ``+inf``; unless
+    ``allow_dead``, every row needs a finite entry."""
+    if not isinstance(log_weights, Tensor) or log_weights.dtype not in FLOAT_DTYPES:
+        raise ValueError(
+            f"{name}: expected a float32 or float64 tensor, got {describe(log_weights)}"
+        )
     if log_weights.ndim < 1 or log_weights.shape[-1] < 1:
         raise ValueError(f"{name}: expected shape (*B, N) with N >= 1, got {log_weights.shape}")
     if bool(torch.isnan(log_weights).any() | torch.isposinf(log_weights).any()):
         raise ValueError(f"{name}: contains NaN or +inf")
-    if bool(torch.isneginf(log_weights).all(-1).any()):
+    if not allow_dead and bool(torch.isneginf(log_weights).all(-1).any()):
         raise ValueError(f"{name}: a row has every weight zero (all -inf)")
     return log_weights
 
@@ -128,8 +134,12 @@ def effective_sample_size(log_weights: Tensor) -> Tensor:
     r"""Kish's effective sample size :math:`(\sum_i w_i)^2 / \sum_i w_i^2`, ``(*B, N)`` → ``(*B,)``.
 
     Computed in log space from unnormalized log-weights; 0 for a row with every weight zero.
+
+    Raises:
+        ValueError: ``log_weights`` is not a float32/float64 ``(*B, N)`` tensor, or holds NaN
+            or ``+inf``.
     """
-    lw = log_weights
+    lw = _check_log_weights(log_weights, "log_weights", allow_dead=True)
     dead = torch.isneginf(lw).all(-1, keepdim=True)
     safe = torch.where(dead, 0.0, lw)
     ess = torch.exp(2.0 * torch.logsumexp(safe, -1) - torch.logsumexp(2.0 * safe, -1))

@@ -8,7 +8,7 @@ from typing import overload
 import torch
 from torch import Tensor
 
-from torchcontact._checks import broadcast_batch, check_tensor
+from torchcontact._checks import all_finite, broadcast_batch, check_symmetric_psd, check_tensor
 from torchcontact.filters import _linalg as la
 from torchcontact.filters._gaussian import Gaussian, check_gaussian, unchecked_gaussian
 
@@ -107,8 +107,18 @@ def rts_smooth(
         gain_t = low.solve_transpose(low.solve(la.mm(Ft, P_f)))  # Gᵀ = P_p⁻¹ F P_f
         mean = m_f + la.mtv(gain_t, mean - m_p)
         cov = la.symmetrize(P_f + la.mm(la.mtm(gain_t, cov - P_p), gain_t))
-        if not bool(torch.isfinite(cov).all()):
-            raise ValueError(f"predicted[{t}]: covariance is not positive definite")
+        if not (all_finite(mean.detach()) and all_finite(cov.detach())):
+            if bool((torch.linalg.cholesky_ex(pred[t].cov).info != 0).any()):
+                raise ValueError(f"predicted[{t}]: covariance is not positive definite")
+            name = "F" if isinstance(F, Tensor) else f"F[{t}]"
+            raise ValueError(f"{name}: the smoothed belief overflows {like.dtype}")
+        try:
+            check_symmetric_psd("smoothed cov", la.to_batch_first(cov, 2))
+        except ValueError as err:
+            raise ValueError(
+                f"predicted[{t}]: the smoothed covariance at t = {t} is not PSD: predicted[{t}] "
+                f"must be filtered[{t}] predicted through F (P⁻ = F P Fᵀ + Q, Q PSD) ({err})"
+            ) from err
         out.append(unchecked_gaussian(la.to_batch_first(mean, 1), la.to_batch_first(cov, 2)))
     out.reverse()
     if stacked:

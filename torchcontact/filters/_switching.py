@@ -8,7 +8,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcontact._checks import describe
+from torchcontact._checks import FLOAT_DTYPES, check_symmetric_psd, describe
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
@@ -54,8 +54,10 @@ class LinearSwitchingModel:
 
     def __post_init__(self) -> None:
         F = self.F
-        if not isinstance(F, Tensor) or not F.is_floating_point() or F.ndim != 3:
-            raise ValueError(f"F: expected a floating (K, n, n) tensor, got {describe(F)}")
+        if not isinstance(F, Tensor) or F.dtype not in FLOAT_DTYPES or F.ndim != 3:
+            raise ValueError(
+                f"F: expected a float32 or float64 (K, n, n) tensor, got {describe(F)}"
+            )
         K, n = int(F.shape[0]), int(F.shape[1])
         if K < 1 or n < 1 or F.shape[2] != n:
             raise ValueError(f"F: expected shape (K, n, n) with K, n >= 1, got {tuple(F.shape)}")
@@ -89,10 +91,9 @@ class LinearSwitchingModel:
         for f in fields(self):
             if not bool(torch.isfinite(getattr(self, f.name)).all()):
                 raise ValueError(f"{f.name}: contains NaN or inf")
-        eps = torch.finfo(F.dtype).eps
-        _check_covariance(self.Q.detach(), "Q", definite=False, eps=eps)
-        _check_covariance(self.R.detach(), "R", definite=True, eps=eps)
-        tol = max(1e-6, 8 * K * eps)
+        check_symmetric_psd("Q", self.Q)
+        check_symmetric_psd("R", self.R, definite=True)
+        tol = max(1e-6, 8 * K * torch.finfo(F.dtype).eps)
         for name, probs in (("transition", self.transition.detach()), ("initial", self.initial)):
             probs = probs.detach()
             if bool((probs < 0).any()):
@@ -198,20 +199,3 @@ def _shape_matches(shape: torch.Size, expected: tuple[int, ...]) -> bool:
     return len(shape) == len(expected) and all(
         e == -1 or s == e for s, e in zip(shape, expected, strict=True)
     )
-
-
-def _check_covariance(cov: Tensor, name: str, *, definite: bool, eps: float) -> None:
-    """Raise unless every ``(K, k, k)`` matrix is symmetric and PSD (PD if ``definite``)."""
-    scale = cov.abs().amax(dim=(-2, -1)).clamp_min(torch.finfo(cov.dtype).tiny)
-    asym = ((cov - cov.mT).abs().amax(dim=(-2, -1)) / scale).max()
-    if float(asym) > eps**0.5:
-        raise ValueError(f"{name}: not symmetric (relative asymmetry {float(asym):.3g})")
-    eig_min = (torch.linalg.eigvalsh(cov).amin(-1) / scale).min()
-    if definite:
-        _, info = torch.linalg.cholesky_ex(cov)
-        if bool((info != 0).any()) or float(eig_min) <= 0:
-            raise ValueError(f"{name}: not positive definite (min eigenvalue {float(eig_min):.3g})")
-    elif float(eig_min) < -(eps**0.5):
-        raise ValueError(
-            f"{name}: not positive semi-definite (min eigenvalue {float(eig_min):.3g})"
-        )
