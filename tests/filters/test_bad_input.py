@@ -194,10 +194,10 @@ def test_rbpf_step_validates_the_belief(
     ("field", "value", "match"),
     [
         ("Q", lambda K: 1e-4 * torch.eye(6, dtype=torch.float16), r"^Q: expected float32"),
-        ("inconsistency_penalty", lambda K: "5", r"^inconsistency_penalty must be a real"),
-        ("inconsistency_penalty", lambda K: math.nan, r"^inconsistency_penalty must be"),
-        ("consistency_gap", lambda K: None, r"^consistency_gap must be a real"),
-        ("consistency_tolerance", lambda K: math.inf, r"^consistency_tolerance must be"),
+        ("inconsistency_penalty", lambda K: "5", r"^inconsistency_penalty\b"),
+        ("inconsistency_penalty", lambda K: math.nan, r"^inconsistency_penalty\b"),
+        ("consistency_gap", lambda K: None, r"^consistency_gap\b"),
+        ("consistency_tolerance", lambda K: math.inf, r"^consistency_tolerance\b"),
         (
             "R",
             lambda K: torch.tensor([[1.0, 2, 0], [0, 1, 0], [0, 0, 1]], dtype=torch.float64),
@@ -229,7 +229,7 @@ def test_planar_contact_model_refuses_bad_fields(
         (lambda: SE2.retract(torch.zeros(3), torch.zeros(2)), r"^delta must have shape"),
         (lambda: SE3.retract(torch.zeros(7), torch.zeros(7)), r"^delta must have shape"),
         (lambda: SE3.local(torch.zeros(6), torch.zeros(6)), r"^x: .*n >= 7"),
-        (lambda: SE2.tangent_dim("3"), r"^dim must be an int"),  # type: ignore[arg-type]
+        (lambda: SE2.tangent_dim("3"), r"^dim\b"),  # type: ignore[arg-type]
     ],
 )
 def test_manifold_functions_refuse_wrong_shapes_and_dtypes(

@@ -60,7 +60,8 @@ def test_kalman_100k_steps_float32_stays_psd_and_reaches_the_riccati_solution() 
 
     # The public functions on the first steps, and their kernels (predict_core, update_core,
     # which kf_predict and kf_update run between validation and layout views) for the rest:
-    # the same operations on the same numbers, so the same results to the bit (checked).
+    # the same operations on the same numbers (checked to float32 rounding: a layout view may
+    # take another BLAS kernel).
     check = 200
     g = prior
     for t in range(check):
@@ -79,8 +80,8 @@ def test_kalman_100k_steps_float32_stays_psd_and_reaches_the_riccati_solution() 
         mean, cov, _ = update_core(mean, cov, y_bl[:, t].unsqueeze(0), H_bl, None, R_bl, None)
         posterior[t] = cov
         if t == check - 1:
-            assert torch.equal(la.to_batch_first(mean, 1), g.mean)
-            assert torch.equal(la.to_batch_first(cov, 2), g.cov)
+            torch.testing.assert_close(la.to_batch_first(mean, 1), g.mean, rtol=1e-5, atol=1e-7)
+            torch.testing.assert_close(la.to_batch_first(cov, 2), g.cov, rtol=1e-5, atol=1e-9)
     wall = time.perf_counter() - start
     assert bool(torch.isfinite(mean).all())
     assert bool(torch.isfinite(posterior).all())
