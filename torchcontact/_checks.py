@@ -7,6 +7,7 @@ No entry point raises ``TypeError`` for a wrong type: a caller catches one excep
 
 from __future__ import annotations
 
+import json
 import math
 import numbers
 import os
@@ -506,3 +507,17 @@ def check_float_shape(name: str, value: object, *, trailing: Sequence[int], what
         raise ValueError(f"{name}: expected a float32 or float64 tensor, got {describe(value)}")
     check_trailing(name, value, trailing=trailing, what=what)
     return value
+
+
+def parse_json(name: str, text: object) -> object:
+    """Parse ``text`` (a JSON document in a ``str`` or UTF-8 bytes) and return the value.
+
+    Raises:
+        ValueError: ``text`` is not a string or not valid JSON; the message names ``name``.
+    """
+    if not isinstance(text, (str, bytes, bytearray)):
+        raise ValueError(f"{name} must be a JSON str, got {type(text).__name__}")
+    try:
+        return json.loads(text)
+    except ValueError as error:  # JSONDecodeError and UnicodeDecodeError
+        raise ValueError(f"{name} is not valid JSON ({error})") from None

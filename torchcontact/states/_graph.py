@@ -18,6 +18,7 @@ from torchcontact._checks import (
     check_float,
     check_int,
     check_real,
+    parse_json,
     read_text_file,
 )
 from torchcontact.states._manipulation_state import ManipulationState
@@ -411,12 +412,7 @@ class ManipulationGraph:
             ValueError: ``text`` is not JSON or not a saved manipulation graph; the message
                 names the field (and the entry) at fault.
         """
-        if not isinstance(text, (str, bytes, bytearray)):
-            raise ValueError(f"text must be a JSON str, got {type(text).__name__}")
-        try:
-            data: Any = json.loads(text)
-        except ValueError as error:  # JSONDecodeError and UnicodeDecodeError
-            raise ValueError(f"text is not valid JSON ({error})") from None
+        data: Any = parse_json("text", text)
         if not isinstance(data, dict) or data.get("format") != _FORMAT:
             raise ValueError(f"text is not a {_FORMAT} JSON document")
 

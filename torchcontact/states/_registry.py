@@ -11,7 +11,7 @@ from typing import Any, Generic, TypeVar
 import torch
 from torch import Tensor
 
-from torchcontact._checks import check_field, check_int, read_text_file
+from torchcontact._checks import check_field, check_int, parse_json, read_text_file
 from torchcontact.states._contact_set import ContactSet
 from torchcontact.states._contact_state import ContactState, contact_states
 from torchcontact.states._grid import FeatureGrid
@@ -168,12 +168,7 @@ class ContactStateRegistry(StateTable[ContactState]):
             ValueError: ``text`` is not JSON or not a saved contact-state registry; the
                 message names the field at fault.
         """
-        if not isinstance(text, (str, bytes, bytearray)):
-            raise ValueError(f"text must be a JSON str, got {type(text).__name__}")
-        try:
-            data: Any = json.loads(text)
-        except ValueError as error:  # JSONDecodeError and UnicodeDecodeError
-            raise ValueError(f"text is not valid JSON ({error})") from None
+        data: Any = parse_json("text", text)
         if not isinstance(data, dict) or data.get("format") != _FORMAT:
             raise ValueError(f"text is not a {_FORMAT} JSON document")
         grid = check_field("text", data, "grid")
