@@ -2,19 +2,20 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import scipy.sparse as sp
 import torch
 from numpy.typing import NDArray
-from qpsolvers import Problem, solve_problem
 
 from torchcontact._checks import check_int, check_positive
 from torchcontact.contact._lcp import default_tolerance
 from torchcontact.contact._per_problem import solve_one_by_one
 from torchcontact.contact._problem import ContactProblem
 from torchcontact.contact._solution import Solution
+
+if TYPE_CHECKING:
+    import scipy.sparse as sp
 
 FloatArray = NDArray[np.float64]
 
@@ -105,6 +106,8 @@ def _staggered_projections(
     qn, qt = q[:K], q[K:]
     pn, pt = np.zeros(K), np.zeros(K * D)
     frictional = bool(mu.max() > 0)
+    import scipy.sparse as sp  # the QP fallback's own dependencies load when it is used
+
     cone = sp.csc_matrix(np.kron(np.eye(K), np.ones((1, D))))
     for round_index in range(1, max_rounds + 1):
         pn_new = _nonnegative_qp(Wnn, qn + Wnt @ pt, start=pn)
@@ -133,6 +136,9 @@ def _nonnegative_qp(
 ) -> FloatArray | None:
     """``argmin ½ xᵀPx + cᵀx`` s.t. ``x ≥ 0`` (and ``G x ≤ h``) with OSQP, warm-started at
     ``start``; ``None`` on failure."""
+    import scipy.sparse as sp
+    from qpsolvers import Problem, solve_problem
+
     size = c.shape[0]
     P_sym = sp.csc_matrix(0.5 * (P + P.T))
     qp = Problem(P_sym, c, G=G, h=h, lb=np.zeros(size), ub=np.full(size, np.inf))

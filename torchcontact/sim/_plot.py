@@ -5,7 +5,6 @@ from __future__ import annotations
 from typing import Any
 
 import torch
-from matplotlib.patches import Polygon as PolygonPatch
 from torch import Tensor
 
 from torchcontact.geometry import HalfPlane, Polygon, perpendicular, transform_points
@@ -33,6 +32,8 @@ def draw_scene(
         alpha: opacity of the bodies (lower it to overlay a trajectory).
         extent: half-length in metres of the drawn part of each half-plane.
     """
+    from matplotlib.patches import Polygon as PolygonPatch  # drawing loads matplotlib
+
     q = q.detach().to("cpu", torch.float64)
     for i, body in enumerate(scene.bodies):
         color = _COLORS[body.kind]
