@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -79,3 +80,29 @@ def test_vertex_at_a_corner_takes_the_edge_facing_it() -> None:
     expected = torch.tensor([[-1.0, 0.0], [-1.0, 0.0]], dtype=torch.float64)
     torch.testing.assert_close(slots.normals[0], expected)
     torch.testing.assert_close(slots.phi[0], torch.zeros(2, dtype=torch.float64))
+
+
+@pytest.mark.bitwise("an angle in range is returned unchanged: θ − 2π·0")
+def test_wrap_angle_matches_numpys_modulo_and_keeps_angles_in_range() -> None:
+    from torchcontact.geometry import wrap_angle
+
+    gen = torch.Generator().manual_seed(0)
+    angle = 200.0 * torch.rand(1000, generator=gen, dtype=torch.float64) - 100.0
+    wrapped = wrap_angle(angle)
+    expected = np.mod(angle.numpy() + np.pi, 2 * np.pi) - np.pi
+    np.testing.assert_allclose(wrapped.numpy(), expected, rtol=0, atol=1e-13)
+    assert bool((wrapped >= -math.pi).all())
+    assert bool((wrapped < math.pi).all())
+    inside = torch.tensor([-math.pi, -1.0, 0.0, 3.0], dtype=torch.float64)
+    assert torch.equal(wrap_angle(inside), inside)
+
+
+def test_quaternion_rotation_matrices_match_scipy() -> None:
+    from scipy.spatial.transform import Rotation
+
+    from torchcontact.geometry import quat_to_matrix
+
+    gen = torch.Generator().manual_seed(1)
+    q = torch.randn(50, 4, generator=gen, dtype=torch.float64)  # normalized by the function
+    expected = Rotation.from_quat(q[:, [1, 2, 3, 0]].numpy()).as_matrix()  # scalar last
+    np.testing.assert_allclose(quat_to_matrix(q).numpy(), expected, rtol=0, atol=1e-14)

@@ -21,11 +21,11 @@ from numpy.typing import NDArray
 from torch import Tensor
 
 from torchcontact.envs._states import NUM_CONTACT_CLASSES
-from torchcontact.envs._task import ACTION_NAMES, PegInHoleTask, _wrap
+from torchcontact.envs._task import ACTION_NAMES, PegInHoleTask
 from torchcontact.filters import RBPF, Gaussian, ModeDynamics, RBPFBelief, kf_update
 from torchcontact.filters._rbpf import Proposal
 from torchcontact.filters._resampling import ResamplingMethod
-from torchcontact.geometry import rotation_matrix
+from torchcontact.geometry import rotation_matrix, wrap_angle
 from torchcontact.states import ManipulationGraph
 
 _F64 = torch.float64
@@ -382,7 +382,7 @@ def _fit_motion(data: PegTransitions, min_samples: int) -> tuple[Tensor, Tensor]
     """Mean ``(A, K, 3)`` and covariance ``(A, K, 3, 3)`` of the grasp displacement."""
     A, K = len(ACTION_NAMES), NUM_CONTACT_CLASSES
     delta = data.next_grasp - data.grasp
-    delta[:, 2] = _wrap(delta[:, 2])
+    delta[:, 2] = wrap_angle(delta[:, 2])
     floor = torch.diag(_tensor(_NOISE_FLOOR, _F64))
     mean = torch.zeros(A, K, 3, dtype=_F64)
     cov = torch.diag(_tensor(_UNSEEN_NOISE, _F64)).expand(A, K, 3, 3).clone()

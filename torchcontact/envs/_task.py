@@ -19,7 +19,7 @@ from torch import Tensor
 from torchcontact.envs._config import PegInHoleConfig
 from torchcontact.envs._engine import CompactSimulator
 from torchcontact.envs._states import PegInHoleStates
-from torchcontact.geometry import HalfPlane, Polygon
+from torchcontact.geometry import HalfPlane, Polygon, wrap_angle
 from torchcontact.sim import UNSOLVED, Body, Scene, SceneState, Simulator, StepResult
 from torchcontact.states import (
     ContactSet,
@@ -179,10 +179,6 @@ def build_scene(config: PegInHoleConfig) -> tuple[Scene, float]:
         margin=config.margin,
     )
     return scene, pad_offset
-
-
-def _wrap(angle: Tensor) -> Tensor:
-    return angle - 2 * math.pi * torch.floor((angle + math.pi) / (2 * math.pi))
 
 
 class PegInHoleTask:
@@ -378,7 +374,7 @@ class PegInHoleTask:
         inward = torch.tensor([1.0, -1.0], dtype=torch.float64)[None, :, None]
         linear = servo + c.grip_force * inward * axis_x
         linear = linear + torch.tensor([0.0, c.finger_mass * c.gravity], dtype=torch.float64)
-        angle_error = _wrap(fingers[..., 2] - gripper[:, None, 2])
+        angle_error = wrap_angle(fingers[..., 2] - gripper[:, None, 2])
         angle_rate = velocity[..., 2] - twist[:, None, 2]
         torque = -(kr * (angle_error + h * angle_rate) + dr * angle_rate) / shrink
         torque_limit = limit * c.finger_height / 2
@@ -459,7 +455,7 @@ class PegInHoleTask:
         cos, sin = torch.cos(gripper[:, 2]), torch.sin(gripper[:, 2])
         dx, dy = peg[:, 0] - gripper[:, 0], peg[:, 1] - gripper[:, 1]
         return torch.stack(
-            [cos * dx + sin * dy, -sin * dx + cos * dy, _wrap(peg[:, 2] - gripper[:, 2])], -1
+            [cos * dx + sin * dy, -sin * dx + cos * dy, wrap_angle(peg[:, 2] - gripper[:, 2])], -1
         )
 
     def outcome(self, physics: Physics) -> tuple[Tensor, Tensor]:

@@ -24,9 +24,6 @@ from torchcontact.filters._manifold import (
     Manifold,
     SE2Pose,
     SE3Pose,
-    quat_exp,
-    quat_log,
-    wrap_angle,
 )
 from torchcontact.filters._rbpf import RBPF, Proposal, RBPFBelief, SwitchingModel
 from torchcontact.filters._resampling import (
@@ -37,6 +34,7 @@ from torchcontact.filters._resampling import (
 )
 from torchcontact.filters._smoother import rts_smooth
 from torchcontact.filters._switching import LinearSwitchingModel, ModeDynamics
+from torchcontact.geometry import quat_exp, quat_log, wrap_angle
 
 __all__ = [
     "EUCLIDEAN",

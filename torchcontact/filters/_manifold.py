@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Final, Protocol, runtime_checkable
 
@@ -10,7 +9,7 @@ import torch
 from torch import Tensor
 
 from torchcontact._checks import check_float_shape, check_int
-from torchcontact.geometry import quat_mul
+from torchcontact.geometry import quat_conj, quat_exp, quat_log, quat_mul, wrap_angle
 
 
 @runtime_checkable
@@ -73,12 +72,6 @@ class Euclidean:
         return check_float_shape("y", y, trailing=(n,), what=f"(*B, {n})") - x
 
 
-def wrap_angle(angle: Tensor) -> Tensor:
-    """Wrap angles to ``(-π, π]`` (differentiable, slope 1)."""
-    angle = check_float_shape("angle", angle, trailing=(), what="(*B)")
-    return torch.atan2(torch.sin(angle), torch.cos(angle))
-
-
 @dataclass(frozen=True)
 class SE2Pose:
     """Planar pose ``(x, y, θ)`` in the world frame, optionally followed by Euclidean components.
@@ -107,43 +100,6 @@ class SE2Pose:
         n, _ = _sizes(self, x)
         diff = check_float_shape("y", y, trailing=(n,), what=f"(*B, {n})") - x
         return torch.cat([diff[..., :2], wrap_angle(diff[..., 2:3]), diff[..., 3:]], dim=-1)
-
-
-def quat_conj(q: Tensor) -> Tensor:
-    """Conjugate (the inverse of a unit quaternion) ``(*B, 4)``."""
-    return torch.cat([q[..., :1], -q[..., 1:]], dim=-1)
-
-
-def _small(sq: Tensor) -> Tensor:
-    """Where a squared norm is small enough for the Taylor branches below to be exact in dtype."""
-    return sq < math.sqrt(torch.finfo(sq.dtype).eps)
-
-
-def quat_exp(v: Tensor) -> Tensor:
-    """Unit quaternion of the rotation vector ``v`` ``(*B, 3)`` (radians) → ``(*B, 4)``."""
-    v = check_float_shape("v", v, trailing=(3,), what="(*B, 3)")
-    sq = (v * v).sum(-1, keepdim=True)
-    small = _small(sq)
-    theta = torch.sqrt(torch.where(small, torch.ones_like(sq), sq))  # safe: finite gradients
-    half = 0.5 * theta
-    scale = torch.where(small, 0.5 - sq / 48.0, torch.sin(half) / theta)
-    w = torch.where(small, 1.0 - sq / 8.0, torch.cos(half))
-    return torch.cat([w, scale * v], dim=-1)
-
-
-def quat_log(q: Tensor) -> Tensor:
-    """Rotation vector ``(*B, 3)`` of the unit quaternion ``q`` ``(*B, 4)``, angle in ``[0, π]``."""
-    q = check_float_shape("q", q, trailing=(4,), what="(*B, 4)")
-    q = torch.where(q[..., :1] < 0, -q, q)  # shortest rotation of the double cover
-    w, v = q[..., :1], q[..., 1:]
-    sq = (v * v).sum(-1, keepdim=True)
-    small = _small(sq)
-    s = torch.sqrt(torch.where(small, torch.ones_like(sq), sq))
-    w_safe = torch.where(small, w, torch.ones_like(w))
-    scale = torch.where(
-        small, 2.0 / w_safe * (1.0 - sq / (3.0 * w_safe * w_safe)), 2.0 * torch.atan2(s, w) / s
-    )
-    return scale * v
 
 
 @dataclass(frozen=True)

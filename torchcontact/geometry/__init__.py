@@ -1,12 +1,19 @@
 """Geometry: planar polygons, half-planes, rigid transforms, quaternions and contact slots."""
 
-from torchcontact.geometry._quaternion import quat_mul
+from torchcontact.geometry._quaternion import (
+    quat_conj,
+    quat_exp,
+    quat_log,
+    quat_mul,
+    quat_to_matrix,
+)
 from torchcontact.geometry._se2 import (
     cross2,
     perpendicular,
     point_velocity,
     rotation_matrix,
     transform_points,
+    wrap_angle,
     wrench_row,
 )
 from torchcontact.geometry._shapes import HalfPlane, Polygon
@@ -27,8 +34,13 @@ __all__ = [
     "perpendicular",
     "point_velocity",
     "polygon_slots",
+    "quat_conj",
+    "quat_exp",
+    "quat_log",
     "quat_mul",
+    "quat_to_matrix",
     "rotation_matrix",
     "transform_points",
+    "wrap_angle",
     "wrench_row",
 ]

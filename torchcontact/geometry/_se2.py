@@ -2,14 +2,30 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
+
+from torchcontact._checks import check_float_shape
 
 
 def rotation_matrix(theta: Tensor) -> Tensor:
     """``(*B, 2, 2)`` rotation matrices of angles ``theta (*B,)`` (rad, counter-clockwise)."""
     cos, sin = torch.cos(theta), torch.sin(theta)
     return torch.stack([torch.stack([cos, -sin], -1), torch.stack([sin, cos], -1)], -2)
+
+
+def wrap_angle(angle: Tensor) -> Tensor:
+    """Wrap angles (radians) into ``[-π, π)``: ``θ - 2π ⌊(θ + π) / 2π⌋``.
+
+    Exact for angles already in range; slope 1 everywhere but at the cut.
+
+    Args:
+        angle: ``(*B,)`` float32 or float64 angles.
+    """
+    angle = check_float_shape("angle", angle, trailing=(), what="(*B)")
+    return angle - 2 * math.pi * torch.floor((angle + math.pi) / (2 * math.pi))
 
 
 def transform_points(pose: Tensor, points: Tensor) -> Tensor:

@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
 from torchcontact._checks import check_float
-from torchcontact.geometry import quat_mul
+from torchcontact.geometry import quat_mul, quat_to_matrix, wrap_angle
+from torchcontact.geometry import rotation_matrix as planar_rotation
 
 
 def pose_size(dim: int) -> int:
@@ -42,16 +41,8 @@ def rotation_matrix(pose: Tensor, dim: int) -> Tensor:
         ``R (*B, d, d)`` with ``x_world = R x_body + t``.
     """
     if dim == 2:
-        c, s = torch.cos(pose[..., 2]), torch.sin(pose[..., 2])
-        return torch.stack([torch.stack([c, -s], -1), torch.stack([s, c], -1)], -2)
-    q = pose[..., 3:] / torch.linalg.vector_norm(pose[..., 3:], dim=-1, keepdim=True)
-    w, x, y, z = q.unbind(-1)
-    rows = [
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ]
-    return torch.stack([torch.stack(row, -1) for row in rows], -2)
+        return planar_rotation(pose[..., 2])
+    return quat_to_matrix(pose[..., 3:])
 
 
 def to_body_frame(points: Tensor, normals: Tensor, pose: Tensor) -> tuple[Tensor, Tensor]:
@@ -70,11 +61,6 @@ def to_body_frame(points: Tensor, normals: Tensor, pose: Tensor) -> tuple[Tensor
     t = pose[..., :dim].unsqueeze(-2)
     # Row vectors: (R^T x)^T = x^T R.
     return (points - t) @ R, normals @ R
-
-
-def wrap_angle(angle: Tensor) -> Tensor:
-    """Wrap angles (radians) into ``[-π, π)``."""
-    return angle - 2 * math.pi * torch.floor((angle + math.pi) / (2 * math.pi))
 
 
 def relative_pose(object_pose: Tensor, robot_pose: Tensor) -> Tensor:
