@@ -113,7 +113,7 @@ def _run(
         belief = rbpf.step(
             belief,
             torch.tensor(problem.ys[t], dtype=dtype),
-            u=int(problem.actions[t]) if actionful else None,
+            action=int(problem.actions[t]) if actionful else None,
             extra_log_likelihood=extra,
             generator=gen,
         )
@@ -452,13 +452,13 @@ def test_action_dependent_transition_requires_valid_actions() -> None:
     rbpf = RBPF(problem.model(), 6)
     belief = rbpf.init(_prior(), batch_shape=(2,))
     y = torch.zeros(1, dtype=F64)
-    with pytest.raises(ValueError, match=r"^u:"):
+    with pytest.raises(ValueError, match=r"^action:"):
         rbpf.step(belief, y)
-    with pytest.raises(ValueError, match=r"^u:"):
-        rbpf.step(belief, y, u=2)
-    with pytest.raises(ValueError, match=r"^u:"):
-        rbpf.step(belief, y, u=torch.tensor([0.0, 1.0]))
-    out = rbpf.step(belief, y, u=torch.tensor([0, 1]))
+    with pytest.raises(ValueError, match=r"^action:"):
+        rbpf.step(belief, y, action=2)
+    with pytest.raises(ValueError, match=r"^action:"):
+        rbpf.step(belief, y, action=torch.tensor([0.0, 1.0]))
+    out = rbpf.step(belief, y, action=torch.tensor([0, 1]))
     assert out.batch_shape == (2,)
 
 
@@ -530,7 +530,7 @@ def test_rbpf_validation_names_the_argument() -> None:
         (lambda: rbpf.init(_prior(), batch_shape=(3, 4, 5, 0.5)), "batch_shape"),
         (lambda: rbpf.step(belief, torch.zeros(2, dtype=F64)), "y"),
         (lambda: rbpf.step(belief, torch.zeros(3, 1, dtype=F64)), "y"),
-        (lambda: rbpf.step(belief, torch.zeros(1, dtype=F64), u=1), "u"),
+        (lambda: rbpf.step(belief, torch.zeros(1, dtype=F64), action=1), "action"),
         (
             lambda: rbpf.step(
                 belief,

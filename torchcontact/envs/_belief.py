@@ -511,7 +511,7 @@ class PegInHoleFilter:
         rbpf = self.rbpf.step(
             belief.rbpf,
             y,
-            u=actions,
+            action=actions,
             extra_log_likelihood=self.model.tactile_log_likelihood(readings),
             control=control,
             generator=generator,

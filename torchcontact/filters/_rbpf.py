@@ -387,9 +387,9 @@ class RBPF:
         self,
         belief: RBPFBelief,
         y: Tensor,
-        u: Tensor | int | None = None,
-        extra_log_likelihood: Tensor | None = None,
         *,
+        action: Tensor | int | None = None,
+        extra_log_likelihood: Tensor | None = None,
         control: Any = None,
         mask: Tensor | None = None,
         generator: torch.Generator | None = None,
@@ -401,8 +401,9 @@ class RBPF:
             belief: the belief at ``t - 1`` (from :meth:`init` or :meth:`step`).
             y: ``(*B', m)`` measurement at ``t``, broadcast to the batch ``*B``. NaN in every
                 component means "no measurement" (likelihood 1 for every particle).
-            u: action selecting the transition matrix of an action-dependent model: an int or a
-                ``(*B',)`` long tensor in ``[0, A)``; must be None for a ``(K, K)`` transition.
+            action: the action that selects the transition matrix of an action-dependent model:
+                an int or a ``(*B',)`` long tensor in ``[0, A)``; must be None for a ``(K, K)``
+                transition.
             extra_log_likelihood: ``(*B', K)`` per-mode log-likelihood added to each particle's
                 log-weight by its new mode (``-inf`` rules a mode out; NaN and ``+inf`` are
                 errors).
@@ -437,7 +438,7 @@ class RBPF:
                 allow_neginf=True,
             )
             shapes.append(("extra_log_likelihood", extra.shape[:-1]))
-        transition = self._transition(u, shapes)
+        transition = self._transition(action, shapes)
         if broadcast_batch(shapes) != batch:
             raise ValueError(
                 f"y: inputs must broadcast to the belief's batch {tuple(batch)}, got "
@@ -825,25 +826,29 @@ class RBPF:
         return belief
 
     def _transition(
-        self, u: Tensor | int | None, shapes: list[tuple[str, Sequence[int]]]
+        self, action: Tensor | int | None, shapes: list[tuple[str, Sequence[int]]]
     ) -> Tensor:
-        """The transition matrix for the action ``u``: ``(K, K)`` or ``(*B', K, K)``."""
+        """The transition matrix for ``action``: ``(K, K)`` or ``(*B', K, K)``."""
         model = self.model
         actions = model.num_actions
         if actions is None:
-            if u is not None:
-                raise ValueError("u: this model's transition is not action-dependent; pass None")
+            if action is not None:
+                raise ValueError(
+                    "action: this model's transition is not action-dependent; pass None"
+                )
             return model.transition
-        if u is None:
-            raise ValueError(f"u: required for an action-dependent transition ({actions} actions)")
-        if isinstance(u, int) and not isinstance(u, bool):
-            u = torch.tensor(u, device=model.device)
-        if not isinstance(u, Tensor) or u.dtype != torch.long:
-            raise ValueError(f"u: expected an int or a long tensor, got {u!r}")
-        if bool(((u < 0) | (u >= actions)).any()):
-            raise ValueError(f"u: actions must lie in [0, {actions})")
-        shapes.append(("u", u.shape))
-        return model.transition[u]
+        if action is None:
+            raise ValueError(
+                f"action: required for an action-dependent transition ({actions} actions)"
+            )
+        if isinstance(action, int) and not isinstance(action, bool):
+            action = torch.tensor(action, device=model.device)
+        if not isinstance(action, Tensor) or action.dtype != torch.long:
+            raise ValueError(f"action: expected an int or a long tensor, got {action!r}")
+        if bool(((action < 0) | (action >= actions)).any()):
+            raise ValueError(f"action: values must lie in [0, {actions})")
+        shapes.append(("action", action.shape))
+        return model.transition[action]
 
 
 def _unpack(params: Tensor, shared: dict[str, Tensor], n: int, m: int) -> list[Tensor]:
