@@ -29,9 +29,6 @@ With ``for_compile`` (the model's ``compiled=True``) the systems are sized by th
 instead (no host synchronisation: shapes that do not depend on the data) and each Tikhonov
 pass inverts its matrices once and iterates with products, which :func:`torch.compile` fuses,
 instead of one batched LU solve per iteration (each a LAPACK call with a per-matrix cost).
-
-Every number is computed by the same operations, in the same order, as in the previous
-implementation (which used about 260 operations): the results are the same to the bit.
 """
 
 from __future__ import annotations

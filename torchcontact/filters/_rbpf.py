@@ -112,8 +112,8 @@ class RBPF:
     bootstrap resampling resets the weights to the constant ``1/N``. This is the usual
     biased but low-variance estimator of :math:`\nabla \log p(y_{1:T})` (e.g. Naesseth,
     Linderman, Ranganath and Blei, "Variational sequential Monte Carlo", AISTATS 2018). A step
-    none of whose inputs needs a gradient records nothing for autograd (it runs in inference
-    mode) and returns ordinary tensors, with the same values.
+    none of whose inputs needs a gradient records nothing for autograd (it runs with gradients
+    disabled) and returns tensors that need none, with the same values.
 
     Time-varying models: every step asks the model for its per-mode dynamics
     (:meth:`SwitchingModel.mode_dynamics`, given the belief and the step's ``control``), so a
