@@ -2,7 +2,10 @@
 
 The Stewart–Trinkle contact step (:class:`ContactProblem`) is solved exactly by Lemke's method,
 by OSQP with staggered projections, by batched projected Gauss–Seidel, or, with the contact
-mode known, by one differentiable linear solve (:func:`solve_mode`).
+mode known, by one differentiable linear solve (:func:`solve_mode`). The settings of that
+solve's regularisation (``SOLVE_MODE_REFINEMENTS``, ``SOLVE_MODE_WEIGHTED_REFINEMENTS``,
+``SOLVE_MODE_FRICTION_COST``, ``SOLVE_MODE_MIN_LOAD_SHARE``) are exported for code that
+repeats it, such as the filters' per-mode linearization.
 """
 
 from torchcontact.contact._active_set import solve_active_set, update_mode
@@ -18,7 +21,13 @@ from torchcontact.contact._lcp import (
     relative_residual,
 )
 from torchcontact.contact._lemke import LemkeOutcome, LemkeResult, lemke, solve_lemke
-from torchcontact.contact._mode_solve import solve_mode
+from torchcontact.contact._mode_solve import (
+    SOLVE_MODE_FRICTION_COST,
+    SOLVE_MODE_MIN_LOAD_SHARE,
+    SOLVE_MODE_REFINEMENTS,
+    SOLVE_MODE_WEIGHTED_REFINEMENTS,
+    solve_mode,
+)
 from torchcontact.contact._pgs import project_capped_simplex, solve_pgs
 from torchcontact.contact._problem import ContactProblem
 from torchcontact.contact._qp import solve_qp
@@ -29,6 +38,10 @@ __all__ = [
     "BOX_CORNER_SIGNS",
     "SEPARATED",
     "SLIDING",
+    "SOLVE_MODE_FRICTION_COST",
+    "SOLVE_MODE_MIN_LOAD_SHARE",
+    "SOLVE_MODE_REFINEMENTS",
+    "SOLVE_MODE_WEIGHTED_REFINEMENTS",
     "STICKING",
     "ContactProblem",
     "LemkeOutcome",

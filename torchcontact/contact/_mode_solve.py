@@ -16,13 +16,13 @@ from torchcontact.contact._problem import ContactProblem
 from torchcontact.contact._solution import Solution, SolveStatus
 
 #: Iterated-Tikhonov refinements of the constraint solve (see :func:`solve_mode`).
-_REFINEMENTS = 5
+SOLVE_MODE_REFINEMENTS = 5
 #: Smallest share of the largest normal impulse used to weight a friction split.
-_MIN_LOAD_SHARE = 1e-3
+SOLVE_MODE_MIN_LOAD_SHARE = 1e-3
 #: How much more a sticking friction impulse costs than a normal impulse in the split.
-_FRICTION_COST = 1e3
+SOLVE_MODE_FRICTION_COST = 1e3
 #: Refinements of the weighted pass, whose larger shifts converge more slowly.
-_WEIGHTED_REFINEMENTS = 10
+SOLVE_MODE_WEIGHTED_REFINEMENTS = 10
 
 
 def validate_mode(problem: ContactProblem, mode: Tensor) -> Tensor:
@@ -141,9 +141,11 @@ def solve_mode(
         # Stay at the given solution's impulse split: the iteration's fixed points are the
         # solutions, so it returns the one nearest the start, and differentiates along it.
         start = _impulse_coordinates(Jt, initial_impulses, r, rows_active)
-        x = _iterated_tikhonov(A, b, torch.ones_like(b), refinements=_REFINEMENTS, start=start)
+        x = _iterated_tikhonov(
+            A, b, torch.ones_like(b), refinements=SOLVE_MODE_REFINEMENTS, start=start
+        )
     else:
-        x = _iterated_tikhonov(A, b, torch.ones_like(b), refinements=_REFINEMENTS)
+        x = _iterated_tikhonov(A, b, torch.ones_like(b), refinements=SOLVE_MODE_REFINEMENTS)
     if initial_impulses is None and K and bool(sticking.any()):
         # Redundant sticking rows leave the split of the impulses free. Prefer normal support
         # over friction, and share friction in proportion to the normal impulses (minimum
@@ -153,11 +155,13 @@ def solve_mode(
         # (floored at eps: with no load at all the weights only need to be finite, and a
         # denormal floor would underflow to NaN in the backward pass)
         share = load.amax(dim=-1, keepdim=True).clamp_min(torch.finfo(problem.dtype).eps)
-        tangent_weight = _FRICTION_COST * share / (load + _MIN_LOAD_SHARE * share)
+        tangent_weight = (
+            SOLVE_MODE_FRICTION_COST * share / (load + SOLVE_MODE_MIN_LOAD_SHARE * share)
+        )
         weights = torch.cat(
             [torch.ones_like(load), tangent_weight.repeat_interleave(r, dim=-1)], -1
         )
-        x = _iterated_tikhonov(A, b, weights, refinements=_WEIGHTED_REFINEMENTS)
+        x = _iterated_tikhonov(A, b, weights, refinements=SOLVE_MODE_WEIGHTED_REFINEMENTS)
 
     v_next = v_free + (Minv_GT @ x.unsqueeze(-1)).squeeze(-1)
     pn = x[..., :K]

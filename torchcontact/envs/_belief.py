@@ -22,9 +22,15 @@ from torch import Tensor
 
 from torchcontact.envs._states import NUM_CONTACT_CLASSES
 from torchcontact.envs._task import ACTION_NAMES, PegInHoleTask
-from torchcontact.filters import RBPF, Gaussian, ModeDynamics, RBPFBelief, kf_update
-from torchcontact.filters._rbpf import Proposal
-from torchcontact.filters._resampling import ResamplingMethod
+from torchcontact.filters import (
+    RBPF,
+    Gaussian,
+    ModeDynamics,
+    Proposal,
+    RBPFBelief,
+    ResamplingMethod,
+    kf_update,
+)
 from torchcontact.geometry import rotation_matrix, wrap_angle
 from torchcontact.states import ManipulationGraph
 

@@ -39,7 +39,7 @@ from torchcontact.contact import (
     solve_active_set,
     solve_mode,
 )
-from torchcontact.geometry import HalfPlane, Polygon, SlotGeometry
+from torchcontact.geometry import TIE_TOLERANCE, HalfPlane, Polygon, SlotGeometry
 from torchcontact.sim import (
     SOLVED_BY_EXACT_MODE,
     SOLVED_BY_GUESS,
@@ -49,9 +49,6 @@ from torchcontact.sim import (
     SceneState,
     StepResult,
 )
-
-#: Relative tolerance of equally close edges, as in :func:`torchcontact.geometry.polygon_slots`.
-_TIE_TOLERANCE = 1e-9
 
 
 @dataclass(frozen=True)
@@ -338,7 +335,7 @@ class CompactSimulator:
             distance = torch.where(valid.unsqueeze(-2), distance, lowest)
             phi = distance.amax(dim=-1)
             longest = torch.where(valid, length.squeeze(-1), 0.0).amax(-1, keepdim=True)
-            tie = distance >= phi.unsqueeze(-1) - _TIE_TOLERANCE * longest.unsqueeze(-1)
+            tie = distance >= phi.unsqueeze(-1) - TIE_TOLERANCE * longest.unsqueeze(-1)
             tie = tie & valid.unsqueeze(-2)
             count = layout.vertex_count[layout.pair_other]  # (Gp,)
             masked = torch.where(valid.unsqueeze(-1), other, 0.0)

@@ -15,10 +15,11 @@ from torch import Tensor
 
 from torchcontact.envs import (
     NUM_CONTACT_CLASSES,
+    PegBelief,
     PegInHole2DVector,
     PegInHoleConfig,
+    PegInHoleFilter,
 )
-from torchcontact.envs._belief import PegBelief, PegInHoleFilter
 from torchcontact.experiments._q_lookup import QLookup
 from torchcontact.rl import QNetwork
 

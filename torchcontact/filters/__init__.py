@@ -25,7 +25,8 @@ from torchcontact.filters._manifold import (
     SE2Pose,
     SE3Pose,
 )
-from torchcontact.filters._rbpf import RBPF, Proposal, RBPFBelief, SwitchingModel
+from torchcontact.filters._rbpf import RBPF, Proposal
+from torchcontact.filters._rbpf_belief import RBPFBelief, SwitchingModel
 from torchcontact.filters._resampling import (
     ResamplingMethod,
     effective_sample_size,

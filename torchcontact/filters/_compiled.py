@@ -23,7 +23,7 @@ each of its variants (dtype, particle count below and above the sizes where the 
 algebra changes its summation, models with and without shared noise) is one entry of
 dynamo's cache for the kernel. Past ``torch._dynamo.config.recompile_limit`` entries (8 by
 default) dynamo runs new variants eagerly, which a process with a few filters reaches (the
-benchmark's eight settings did): the first compiled kernel raises the limit to
+benchmark's eight settings do): the first compiled kernel raises the limit to
 :data:`RECOMPILE_LIMIT` for the process.
 """
 

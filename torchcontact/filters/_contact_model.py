@@ -20,7 +20,7 @@ from torchcontact.filters._planar_linearization import (
     mode_table,
     slot_layout,
 )
-from torchcontact.filters._rbpf import RBPFBelief
+from torchcontact.filters._rbpf_belief import RBPFBelief
 from torchcontact.filters._switching import LinearSwitchingModel, ModeDynamics
 from torchcontact.sim import Scene, SceneState, contact_problem
 from torchcontact.states import TactileArray, object_contacts

@@ -29,9 +29,6 @@ With ``for_compile`` (the model's ``compiled=True``) the systems are sized by th
 instead (no host synchronisation: shapes that do not depend on the data) and each Tikhonov
 pass inverts its matrices once and iterates with products, which :func:`torch.compile` fuses,
 instead of one batched LU solve per iteration (each a LAPACK call with a per-matrix cost).
-
-Every number is computed by the same operations, in the same order, as in the previous
-implementation (which used about 260 operations): the results are the same to the bit.
 """
 
 from __future__ import annotations
@@ -42,14 +39,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchcontact.contact._mode_solve import (
-    _FRICTION_COST,
-    _MIN_LOAD_SHARE,
-    _REFINEMENTS,
-    _WEIGHTED_REFINEMENTS,
+from torchcontact.contact import (
+    SOLVE_MODE_FRICTION_COST,
+    SOLVE_MODE_MIN_LOAD_SHARE,
+    SOLVE_MODE_REFINEMENTS,
+    SOLVE_MODE_WEIGHTED_REFINEMENTS,
 )
-from torchcontact.geometry import HalfPlane, Polygon
-from torchcontact.geometry._slots import _TIE_TOLERANCE
+from torchcontact.geometry import TIE_TOLERANCE, HalfPlane, Polygon
 from torchcontact.sim import Scene
 
 #: Offset of padding edges (signed distance about ``-_FAR``: never the closest edge).
@@ -265,7 +261,7 @@ def slot_layout(scene: Scene, device: torch.device) -> SlotLayout:
         "edge_offset": edge_offset[groups].unsqueeze(-2),
         "facing_offset": facing_offset[groups].unsqueeze(-2),
         "edge_reach": edge_length[groups].unsqueeze(-2) + scene.margin,
-        "tie_tolerance": _TIE_TOLERANCE  # of a half-plane: 0, it has a single edge
+        "tie_tolerance": TIE_TOLERANCE  # of a half-plane: 0, it has a single edge
         * edge_length[groups].nan_to_num(posinf=0.0).amax(-1)[:, None, None],
         "feature_sign": feature_sign,
         "mu": torch.tensor(mu, dtype=f64),
@@ -502,16 +498,22 @@ def linearize_modes(
     shift = (_SQRT_EPS * scale).unsqueeze(-1)  # (B, K, 14, 1, 1)
     eye = table.eyes[W - 1]
     impulses = _tikhonov(
-        system, off + shift[..., 0], b, shift, eye, _REFINEMENTS, inverse=for_compile
+        system, off + shift[..., 0], b, shift, eye, SOLVE_MODE_REFINEMENTS, inverse=for_compile
     )
     # Redundant sticking rows leave the impulse split free: solve_mode prefers normal support
     # and shares friction in proportion to the normal loads (kept for modes that stick).
     load = impulses[..., :W, :].clamp(min=0.0)
     share = load.amax(dim=-2, keepdim=True).clamp_min(torch.finfo(torch.float64).eps)
-    friction = _FRICTION_COST * share / (load + _MIN_LOAD_SHARE * share)
+    friction = SOLVE_MODE_FRICTION_COST * share / (load + SOLVE_MODE_MIN_LOAD_SHARE * share)
     weighted = torch.cat([shift.expand_as(load), shift * friction], dim=-2)  # (..., 2W, 1)
     split = _tikhonov(
-        system, off + weighted[..., 0], b, weighted, eye, _WEIGHTED_REFINEMENTS, inverse=for_compile
+        system,
+        off + weighted[..., 0],
+        b,
+        weighted,
+        eye,
+        SOLVE_MODE_WEIGHTED_REFINEMENTS,
+        inverse=for_compile,
     )
     impulses = torch.where(sticks.any(dim=-1)[:, :, None, None, None], split, impulses)
     v_next = (v_free + U @ impulses).squeeze(-1)  # (B, K, 14, 3)

@@ -1,11 +1,13 @@
-"""Rao-Blackwellized particle filter over the modes of a linear switching model."""
+"""Rao-Blackwellized particle filter over the modes of a linear switching model: the filter's
+settings, its initialization, the checks of a step's inputs and the two proposals' steps (whose
+kernels are in ``_rbpf_kernels``)."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
 from dataclasses import KW_ONLY, dataclass
-from typing import Any, Literal, Protocol, get_args, runtime_checkable
+from typing import Any, Literal, get_args
 
 import torch
 from torch import Tensor
@@ -14,11 +16,24 @@ from torchcontact._checks import broadcast_batch, check_mask, check_tensor, desc
 from torchcontact.filters import _linalg as la
 from torchcontact.filters._compiled import kernel
 from torchcontact.filters._gaussian import Gaussian, check_gaussian, unchecked_gaussian
-from torchcontact.filters._kalman import (
-    observed_components,
-    predict_core,
-    update_core,
-    update_log_likelihood,
+from torchcontact.filters._kalman import observed_components
+from torchcontact.filters._rbpf_belief import RBPFBelief, SwitchingModel
+from torchcontact.filters._rbpf_kernels import (
+    DEAD,
+    RESAMPLE,
+    batch_last_measurement,
+    belief_flags,
+    bootstrap_core,
+    dynamics_flags,
+    gather_particles,
+    gather_states,
+    normalize_log_weights,
+    particle_params,
+    predict_update,
+    predicted_log_likelihood,
+    read_flags,
+    step_flags,
+    unpack_dynamics,
 )
 from torchcontact.filters._resampling import (
     RESAMPLING_METHODS,
@@ -34,147 +49,6 @@ Proposal = Literal["bootstrap", "all_modes"]
 PROPOSALS: tuple[str, ...] = get_args(Proposal)
 #: Fields of :class:`ModeDynamics` that the particles need no copy of when all modes share them.
 _SHAREABLE = ("Q", "H", "d", "R")
-_INVALID_WEIGHTS = "belief: a Kalman update produced NaN (a particle covariance is not PSD)"
-
-
-@runtime_checkable
-class SwitchingModel(Protocol):
-    """What the :class:`RBPF` needs of a model: ``K`` modes, a mode transition, and per-mode
-    linear-Gaussian dynamics for each step.
-
-    :class:`~torchcontact.filters.LinearSwitchingModel` (constant dynamics) and
-    :class:`~torchcontact.filters.PlanarContactModel` (contact dynamics linearized at the
-    belief's mean) implement it.
-    """
-
-    @property
-    def num_modes(self) -> int:
-        """``K``."""
-        ...
-
-    @property
-    def state_dim(self) -> int:
-        """``n``."""
-        ...
-
-    @property
-    def obs_dim(self) -> int:
-        """``m``."""
-        ...
-
-    @property
-    def num_actions(self) -> int | None:
-        """``A`` for an action-dependent ``(A, K, K)`` transition, else None."""
-        ...
-
-    @property
-    def dtype(self) -> torch.dtype:
-        """Floating dtype of the filter."""
-        ...
-
-    @property
-    def device(self) -> torch.device:
-        """Device of the filter."""
-        ...
-
-    @property
-    def transition(self) -> Tensor:
-        """``(K, K)`` or ``(A, K, K)`` row-stochastic mode transition (row = from)."""
-        ...
-
-    @property
-    def initial(self) -> Tensor:
-        """``(K,)`` distribution of the first mode."""
-        ...
-
-    def mode_dynamics(self, belief: RBPFBelief, control: Any) -> ModeDynamics:
-        """Per-mode dynamics of the step that starts from ``belief`` under ``control``."""
-        ...
-
-
-@dataclass(frozen=True, eq=False)
-class RBPFBelief:
-    r"""The belief of an :class:`RBPF`: ``N`` weighted particles per batch entry, each a mode
-    with a Gaussian over the continuous state,
-    :math:`p(m_t, x_t \mid y_{1:t}) \approx \sum_i w_i\, \delta_{m^i_t}(m_t)\,
-    N(x_t; \mu_i, P_i)`.
-
-    Attributes:
-        modes: ``(*B, N)`` long, the current mode :math:`m^i_t` of each particle.
-        log_weights: ``(*B, N)`` normalized log-weights (``logsumexp == 0``; ``-inf`` = weight
-            zero).
-        gaussians: the per-particle Kalman beliefs, a :class:`Gaussian` with batch ``(*B, N)``.
-        log_evidence: ``(*B,)`` running :math:`\log \hat p(y_{1:t})` (an unbiased estimate of
-            :math:`p(y_{1:t})` in linear space); ``-inf`` once a step had zero likelihood.
-        history: ``(*B, N, L + 1)`` long, the particle's mode path, newest first:
-            ``history[..., l]`` is :math:`m^i_{t-l}` (``history[..., 0] == modes``); ``-1``
-            before the first step (or a reset). Resampled with the particles.
-        degenerate: ``(*B,)`` bool, ``True`` where the last step gave every particle weight
-            zero and the entry was reset to the prior.
-        prior: the prior of :meth:`RBPF.init` (batch ``*B``), the reset target.
-        num_modes: ``K``.
-    """
-
-    modes: Tensor
-    log_weights: Tensor
-    gaussians: Gaussian
-    log_evidence: Tensor
-    history: Tensor
-    degenerate: Tensor
-    prior: Gaussian
-    num_modes: int
-
-    @property
-    def batch_shape(self) -> torch.Size:
-        """The batch dims ``*B``."""
-        return self.modes.shape[:-1]
-
-    @property
-    def num_particles(self) -> int:
-        """``N``."""
-        return int(self.modes.shape[-1])
-
-    @property
-    def max_lag(self) -> int:
-        """``L``, the longest lag of :meth:`fixed_lag_marginals`."""
-        return int(self.history.shape[-1]) - 1
-
-    def fixed_lag_marginals(self, lag: int) -> Tensor:
-        r"""Fixed-lag smoothed mode marginals :math:`p(m_{t-\mathrm{lag}} = k \mid y_{1:t})`.
-
-        Args:
-            lag: ``0 <= lag <= L``.
-
-        Returns:
-            ``(*B, K)``; rows sum to 1, or less when ``lag`` reaches before the first step.
-        """
-        if not isinstance(lag, int) or not 0 <= lag <= self.max_lag:
-            raise ValueError(f"lag: expected an int in [0, {self.max_lag}], got {lag!r}")
-        modes = self.history[..., lag]
-        weights = torch.exp(self.log_weights) * (modes >= 0)
-        out = weights.new_zeros((*self.batch_shape, self.num_modes))
-        return out.scatter_add(-1, modes.clamp(min=0), weights)
-
-    def mode_marginals(self) -> Tensor:
-        r"""Filtered mode marginals :math:`p(m_t = k \mid y_{1:t})`, ``(*B, K)``."""
-        return self.fixed_lag_marginals(0)
-
-    def mean(self) -> Tensor:
-        r"""Mixture mean :math:`\sum_i w_i \mu_i`, ``(*B, n)``."""
-        w = torch.exp(self.log_weights).unsqueeze(-1)
-        return (w * self.gaussians.mean).sum(-2)
-
-    def cov(self) -> Tensor:
-        r"""Moment-matched mixture covariance
-        :math:`\sum_i w_i (P_i + (\mu_i - \bar\mu)(\mu_i - \bar\mu)^\top)`, ``(*B, n, n)``."""
-        w = torch.exp(self.log_weights)[..., None, None]
-        dev = self.gaussians.mean - self.mean().unsqueeze(-2)
-        spread = dev.unsqueeze(-1) * dev.unsqueeze(-2)
-        return (w * (self.gaussians.cov + spread)).sum(-3)
-
-    def ess(self) -> Tensor:
-        r"""Effective sample size :math:`1 / \sum_i w_i^2`, ``(*B,)``."""
-        return torch.exp(-torch.logsumexp(2.0 * self.log_weights, -1))
 
 
 @dataclass(frozen=True, eq=False)
@@ -238,8 +112,8 @@ class RBPF:
     bootstrap resampling resets the weights to the constant ``1/N``. This is the usual
     biased but low-variance estimator of :math:`\nabla \log p(y_{1:T})` (e.g. Naesseth,
     Linderman, Ranganath and Blei, "Variational sequential Monte Carlo", AISTATS 2018). A step
-    none of whose inputs needs a gradient records nothing for autograd (it runs in inference
-    mode) and returns ordinary tensors, with the same values.
+    none of whose inputs needs a gradient records nothing for autograd (it runs with gradients
+    disabled) and returns tensors that need none, with the same values.
 
     Time-varying models: every step asks the model for its per-mode dynamics
     (:meth:`SwitchingModel.mode_dynamics`, given the belief and the step's ``control``), so a
@@ -475,7 +349,7 @@ class RBPF:
         model, N, K = self.model, self.num_particles, self.model.num_modes
         batch = belief.batch_shape
         if rows is None:
-            # Modes out of [0, K) are flagged by the step (:func:`_belief_flags`); clamped here
+            # Modes out of [0, K) are flagged by the step (:func:`belief_flags`); clamped here
             # so that the step reaches its one flag read.
             modes = belief.modes.clamp(0, K - 1)
             return transition.expand(*batch, K, K).gather(
@@ -509,7 +383,7 @@ class RBPF:
             measurement, given as ``(K, ...)`` views of one matrix) by name, without the mode
             dim (the particles need no copy of them); and the optional
             ``mode_log_weight (*B', K)``. Shapes and dtypes are checked here, values by the
-            step (:func:`_dynamics_flags`).
+            step (:func:`dynamics_flags`).
         """
         model = self.model
         K, n, m = model.num_modes, model.state_dim, model.obs_dim
@@ -575,7 +449,7 @@ class RBPF:
                     f"belief's batch {tuple(belief.batch_shape)}"
                 )
         # Their values (finite; a log-weight may be -inf) are tested by the step's kernels,
-        # whose flags are read with one host synchronization (:func:`_read_flags`).
+        # whose flags are read with one host synchronization (:func:`read_flags`).
         return packed, shared, log_weight
 
     def _measured(self, observed: Tensor | None) -> bool:
@@ -605,13 +479,13 @@ class RBPF:
             (*batch, N, 1), dtype=torch.float64, device=model.device, generator=generator
         )
         modes = search_cdf(cdf, draw).squeeze(-1)
-        y_bl, obs_bl = _measurement(y, observed, nb + 1)
+        y_bl, obs_bl = batch_last_measurement(y, observed, nb + 1)
         g = belief.gaussians
-        core = kernel(_bootstrap_core, compiled=self.compiled)
+        core = kernel(bootstrap_core, compiled=self.compiled)
         log_w, mean, cov, log_evidence, history, dead, resample, flags = core(
             modes,
             packed,
-            _select(packed, modes),
+            particle_params(packed, modes),
             shared,
             mode_log_weight,
             la.to_batch_last(g.mean, 1, nb + 1),
@@ -629,13 +503,13 @@ class RBPF:
             entrywise=self.compiled,
             log_ess_bound=-math.log(max(self.ess_threshold * N, 1e-300)),
         )
-        read = _read_flags(flags)
-        any_dead, any_resample = read[_DEAD], read[_RESAMPLE]
+        read = read_flags(flags)
+        any_dead, any_resample = read[DEAD], read[RESAMPLE]
         if any_resample:
             index = resample_indices(log_w, N, self.resampling, generator)
             identity = torch.arange(N, device=index.device)
             index = torch.where(resample.unsqueeze(-1), index, identity)
-            modes, history, mean, cov = _gather(index, modes, history, mean, cov)
+            modes, history, mean, cov = gather_particles(index, modes, history, mean, cov)
             log_w = torch.where(resample.unsqueeze(-1), -math.log(N), log_w)
         return self._belief(belief, modes, log_w, mean, cov, log_evidence, history, dead, any_dead)
 
@@ -666,14 +540,16 @@ class RBPF:
         for weight in (extra, mode_log_weight):
             if weight is not None:
                 log_w = log_w + weight.unsqueeze(-2)
-        log_w, log_evidence, dead, invalid = _normalized(log_w.flatten(-2), belief.log_evidence)
-        flags = _flags(
+        log_w, log_evidence, dead, invalid = normalize_log_weights(
+            log_w.flatten(-2), belief.log_evidence
+        )
+        flags = step_flags(
             invalid,
             dead,
-            *_dynamics_flags(packed, shared, mode_log_weight),
-            _belief_flags(belief.modes, belief.log_weights, belief.log_evidence, K),
+            *dynamics_flags(packed, shared, mode_log_weight),
+            belief_flags(belief.modes, belief.log_weights, belief.log_evidence, K),
         )
-        any_dead = _read_flags(flags)[_DEAD]
+        any_dead = read_flags(flags)[DEAD]
         index, log_w = optimal_resample_core(log_w, N, generator)
         modes = index % K
         parents = torch.div(index, K, rounding_mode="floor")
@@ -683,13 +559,13 @@ class RBPF:
         history = torch.cat([modes.unsqueeze(-1), history[..., :-1]], -1)
         # Only the N survivors need the Kalman update: the same operations on the same
         # numbers (in the same memory layouts) as a step of all N·K children does for them.
-        mean, cov = _gather_states(parents, mean, cov)
-        y_bl, obs_bl = _measurement(y, observed, nb + 1)
-        kalman = kernel(_predict_update, compiled=self.compiled)
+        mean, cov = gather_states(parents, mean, cov)
+        y_bl, obs_bl = batch_last_measurement(y, observed, nb + 1)
+        kalman = kernel(predict_update, compiled=self.compiled)
         mean, cov, _ = kalman(
             mean,
             cov,
-            _select(packed, modes),
+            particle_params(packed, modes),
             shared,
             y_bl,
             obs_bl,
@@ -713,17 +589,17 @@ class RBPF:
     ) -> Tensor:
         """``(*B, N, K)`` predictive log-likelihoods of every particle's ``K`` children.
 
-        The log-likelihood of :func:`_predict_update` on every child without the posterior, from the
+        The log-likelihood of :func:`predict_update` on every child without the posterior, from the
         leading ``r`` components of the predicted mean and covariance: those that ``H`` reads
         when every mode shares it (the pose of a
         :class:`~torchcontact.filters.PlanarContactModel`), else all. The operations are
-        those of :func:`_predict_update` on the same numbers, so the values are the same (to the bit
+        those of :func:`predict_update` on the same numbers, so the values are the same (to the bit
         when ``H`` selects components; see :func:`update_log_likelihood` for the exception).
 
         Args:
             mean: ``(n, *B, N)``; cov: ``(n, n, *B, N)``: the particles, batch-last.
             packed: ``(K, D)`` or ``(*B', K, D)`` the modes' packed dynamics.
-            shared: as in :func:`_predict_update`.
+            shared: as in :func:`predict_update`.
             y: ``(*B', m)`` measurement; observed: ``(*B', m)`` bool or None.
             measured: :meth:`_measured` of ``observed``; ``False``: likelihood 1.
         """
@@ -742,7 +618,7 @@ class RBPF:
         params = packed.movedim(-1, 0).reshape(
             packed.shape[-1], *(1,) * (nb - lead), *packed.shape[:-2], K, 1
         )  # (D, *B', K, 1)
-        F, c, Q, H, d, R = _unpack(params, shared, n, m)
+        F, c, Q, H, d, R = unpack_dynamics(params, shared, n, m)
         # F x + c as a step of all children computes it, whose sums over x round as they do in
         # its layouts: per-batch dynamics are gathered with the fields last (each row's
         # products F_ij x_j summed over the innermost j), shared ones are contiguous.
@@ -753,8 +629,8 @@ class RBPF:
         else:
             predicted = la.mv(F[:r].contiguous(), mean.unsqueeze(-2)) + c[:r]
         size = n * n * n * math.prod(predicted.shape[1:])
-        y_bl, obs_bl = _measurement(y, observed, predicted.ndim - 1)
-        likelihood = kernel(_predicted_log_likelihood, compiled=self.compiled)
+        y_bl, obs_bl = batch_last_measurement(y, observed, predicted.ndim - 1)
+        likelihood = kernel(predicted_log_likelihood, compiled=self.compiled)
         log_lik = likelihood(
             predicted,
             F[:r],
@@ -849,293 +725,3 @@ class RBPF:
             raise ValueError(f"action: values must lie in [0, {actions})")
         shapes.append(("action", action.shape))
         return model.transition[action]
-
-
-def _unpack(params: Tensor, shared: dict[str, Tensor], n: int, m: int) -> list[Tensor]:
-    """Batch-last ``F, c, Q, H, d, R`` views: the packed ones split from ``(D, *P)`` params,
-    the shared ones with ``len(P)`` batch dims of size 1."""
-    batch = params.shape[1:]
-    shapes = {"F": (n, n), "c": (n,), "Q": (n, n), "H": (m, n), "d": (m,), "R": (m, m)}
-    names = [name for name in shapes if name not in shared]
-    parts = torch.split(params, [math.prod(shapes[name]) for name in names])
-    fields = {
-        name: part.reshape(*shapes[name], *batch) for name, part in zip(names, parts, strict=True)
-    }
-    ones = (1,) * len(batch)
-    fields.update({name: value.reshape(*value.shape, *ones) for name, value in shared.items()})
-    return [fields[name] for name in shapes]
-
-
-def _predict_update(
-    mean: Tensor,
-    cov: Tensor,
-    params: Tensor,
-    shared: dict[str, Tensor],
-    y: Tensor,
-    observed: Tensor | None,
-    *,
-    n: int,
-    m: int,
-    measured: bool = True,
-    entrywise: bool = False,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Kalman predict + update of batch-last particles under per-particle model parameters.
-
-    Args:
-        mean: ``(n, *P)``; cov: ``(n, n, *P)`` (``*P`` = the particle batch dims).
-        params: ``(D, *P')`` packed per-mode fields (see :meth:`RBPF._packed_dynamics`).
-        shared: the fields every mode shares, without batch dims.
-        y, observed: the measurement and its used components, batch-last
-            (:func:`_measurement`).
-        n, m: state and measurement sizes.
-        measured: ``False`` predicts only (likelihood 1: nothing was measured).
-        entrywise: factor the predicted covariances per particle: no host synchronization,
-            so the compiled form is one kernel (see :func:`update_core`).
-
-    Returns:
-        ``(mean⁺ (n, *P), cov⁺ (n, n, *P), log_likelihood (*P))``.
-    """
-    F, c, Q, H, d, R = _unpack(params, shared, n, m)
-    if not measured:
-        mean, cov = predict_core(mean, cov, F, c, Q)
-        return mean, cov, mean.new_zeros(mean.shape[1:])
-    # update_core reads the lower triangle only, except that entries without a measurement
-    # keep the predicted covariance as it is: symmetrize only then.
-    mean, cov = predict_core(mean, cov, F, c, Q, symmetric=observed is not None)
-    return update_core(mean, cov, y, H, d, R, observed, entrywise=entrywise)
-
-
-def _bootstrap_core(
-    modes: Tensor,
-    packed: Tensor,
-    params: Tensor,
-    shared: dict[str, Tensor],
-    mode_log_weight: Tensor | None,
-    mean: Tensor,
-    cov: Tensor,
-    y: Tensor,
-    observed: Tensor | None,
-    extra: Tensor | None,
-    log_weights: Tensor,
-    log_evidence: Tensor,
-    history: Tensor,
-    previous_modes: Tensor,
-    *,
-    n: int,
-    m: int,
-    measured: bool,
-    entrywise: bool,
-    log_ess_bound: float,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """A bootstrap step from the sampled modes up to resampling, without host
-    synchronization (compiled: one kernel).
-
-    Args:
-        modes: ``(*B, N)`` the particles' new modes; packed: ``(*B', K, D)`` every mode's
-            packed dynamics (tested for finite values only); params: ``(D, *B, N)`` the
-            particles' (:func:`_select`, given rather than gathered here: the compiled loops
-            vectorize over contiguous parameters, not over indirect loads); shared: the
-            fields every mode shares; mode_log_weight: ``(*B', K)`` or None, the model's.
-        mean: ``(n, *B, N)``; cov: ``(n, n, *B, N)``: the particles, batch-last.
-        y, observed: batch-last (:func:`_measurement`); extra: ``(*B', K)`` or None.
-        log_weights: ``(*B, N)``; log_evidence: ``(*B,)``; history: ``(*B, N, L + 1)``;
-            previous_modes: ``(*B, N)``: the given belief's (tested by :func:`_belief_flags`).
-        n, m, measured, entrywise: as in :func:`_predict_update`.
-        log_ess_bound: resample where ``log Σ w² >`` this (``-log(threshold · N)``).
-
-    Returns:
-        The normalized log-weights, batch-last mean and covariance, evidence and history,
-        ``dead (*B)`` (every weight zero: placeholders, see :func:`_normalized`), ``resample
-        (*B)`` (ESS below the threshold, not dead) and the :func:`_flags`.
-    """
-    mean, cov, log_lik = _predict_update(
-        mean,
-        cov,
-        params,
-        shared,
-        y,
-        observed,
-        n=n,
-        m=m,
-        measured=measured,
-        entrywise=entrywise,
-    )
-    belief_flags = _belief_flags(previous_modes, log_weights, log_evidence, packed.shape[-2])
-    log_w = log_weights + log_lik
-    for weight in (extra, mode_log_weight):
-        if weight is not None:
-            log_w = log_w + weight.expand(*log_w.shape[:-1], weight.shape[-1]).gather(-1, modes)
-    log_w, log_evidence, dead, invalid = _normalized(log_w, log_evidence)
-    history = torch.cat([modes.unsqueeze(-1), history[..., :-1]], -1)
-    # ESS = 1 / Σ w² < threshold · N, in log space
-    resample = (torch.logsumexp(2.0 * log_w, -1) > log_ess_bound) & ~dead
-    flags = _flags(
-        invalid,
-        dead,
-        *_dynamics_flags(packed, shared, mode_log_weight),
-        belief_flags,
-        resample,
-    )
-    return log_w, mean, cov, log_evidence, history, dead, resample, flags
-
-
-def _select(packed: Tensor, modes: Tensor) -> Tensor:
-    """Batch-last ``(D, *B, N)`` packed dynamics of the particles' ``modes (*B, N)``, from
-    ``packed (K, D)`` (one set for the whole batch: one index_select) or ``(*B', K, D)``."""
-    batch, N = modes.shape[:-1], modes.shape[-1]
-    if packed.ndim == 2:
-        return packed.T.index_select(1, modes.reshape(-1)).reshape(packed.shape[-1], *batch, N)
-    params = packed.expand(*batch, *packed.shape[-2:]).gather(
-        -2, modes.unsqueeze(-1).expand(*batch, N, packed.shape[-1])
-    )
-    return params.movedim(-1, 0)
-
-
-def _predicted_log_likelihood(
-    predicted: Tensor,
-    F: Tensor,
-    cov: Tensor,
-    Q: Tensor,
-    y: Tensor,
-    H: Tensor,
-    d: Tensor | None,
-    R: Tensor,
-    observed: Tensor | None,
-    *,
-    size: int,
-    entrywise: bool,
-) -> Tensor:
-    """The children's predictive log-likelihoods from the leading ``(r, r)`` block of
-    :func:`~torchcontact.filters._kalman.predict_core`'s ``F P Fᵀ + Q``, computed by the same
-    operations (products sized as the full step's, ``size``).
-
-    Args:
-        predicted: ``(r, *B)`` the leading components of the predicted means.
-        F: ``(r, n, *B)`` the leading rows of the children's ``F``; cov: ``(n, n, *B)``;
-            Q: ``(r, r, *B)``.
-        y, H, d, R, observed: batch-last, as in :func:`update_log_likelihood`.
-        entrywise: see :func:`update_core`.
-
-    Returns:
-        ``(*B)`` log-likelihoods.
-    """
-    block = la.add_(la.mm_t(la.mm(F, cov, size=size), F, size=size), Q)
-    if observed is not None:  # as _predict_update symmetrizes
-        block = la.symmetrize(block)
-    return update_log_likelihood(predicted, block, y, H, d, R, observed, entrywise=entrywise)
-
-
-def _measurement(
-    y: Tensor, observed: Tensor | None, batch_ndim: int
-) -> tuple[Tensor, Tensor | None]:
-    """``y (*B', m)`` and ``observed`` batch-last with ``batch_ndim`` batch dims: the particle
-    dims that they lack are added as 1s on the right."""
-    m = y.shape[-1]
-    extra_dims = batch_ndim - (y.ndim - 1)  # particle dims that y does not have
-    y_bl = la.to_batch_last(y.reshape(*y.shape[:-1], *(1,) * extra_dims, m), 1, batch_ndim)
-    if observed is None:
-        return y_bl, None
-    observed = observed.reshape(*observed.shape[:-1], *(1,) * extra_dims, m)
-    return y_bl, la.to_batch_last(observed, 1, batch_ndim)
-
-
-def _normalized(log_w: Tensor, log_evidence: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Normalize incremental log-weights ``(*B, M)`` and accumulate the evidence ``(*B,)``,
-    without host synchronization.
-
-    Returns ``(log_w, log_evidence, dead, invalid)``: where every weight is zero (``dead``),
-    the log-weights are a uniform placeholder (the caller resets the entry) and the evidence
-    is ``-inf``, gradients staying finite everywhere; ``invalid`` flags a NaN or ``+inf`` sum
-    (the caller raises).
-    """
-    increment = torch.logsumexp(log_w, -1)
-    dead = torch.isneginf(increment)
-    invalid = torch.isnan(increment) | torch.isposinf(increment)
-    # Summed again without the dead entries' -inf (the same numbers elsewhere), so that the
-    # gradient of the logsumexp is finite.
-    log_w = torch.where(dead.unsqueeze(-1), 0.0, log_w)
-    increment = torch.logsumexp(log_w, -1)
-    log_evidence = torch.where(dead, -math.inf, log_evidence + increment)
-    return log_w - increment.unsqueeze(-1), log_evidence, dead, invalid
-
-
-# Entries of a step's flags (:func:`_flags`).
-_INVALID, _DEAD, _BAD_DYNAMICS, _BAD_MODE_WEIGHT, _BAD_WEIGHTS, _BAD_MODES, _RESAMPLE = range(7)
-
-
-def _belief_flags(modes: Tensor, log_weights: Tensor, log_evidence: Tensor, K: int) -> Tensor:
-    """Whether the belief given to a step holds NaN or ``+inf`` log-weights or evidence, and
-    whether its modes leave ``[0, K)``: ``(2,)`` bool, no synchronization (the step reads it
-    with its other flags).
-
-    Args:
-        modes: ``(*B, N)`` long; log_weights: ``(*B, N)``; log_evidence: ``(*B,)``.
-        K: the number of modes.
-    """
-    # x < inf is False exactly for NaN and +inf
-    bad_weights = ~((log_weights < math.inf).all() & (log_evidence < math.inf).all())
-    return torch.stack([bad_weights, ((modes < 0) | (modes >= K)).any()])
-
-
-def _dynamics_flags(
-    packed: Tensor, shared: dict[str, Tensor], mode_log_weight: Tensor | None
-) -> tuple[Tensor, Tensor]:
-    """Whether the model's dynamics of a step hold NaN or inf, and whether its
-    ``mode_log_weight`` holds NaN or ``+inf``: two ``()`` bool tensors, no synchronization."""
-    finite = torch.isfinite(packed).all()
-    for value in shared.values():
-        finite = finite & torch.isfinite(value).all()
-    if mode_log_weight is None:
-        return ~finite, torch.zeros_like(finite)
-    return ~finite, (torch.isnan(mode_log_weight) | torch.isposinf(mode_log_weight)).any()
-
-
-def _flags(
-    invalid: Tensor,
-    dead: Tensor,
-    bad_dynamics: Tensor,
-    bad_mode_weight: Tensor,
-    belief_flags: Tensor,
-    resample: Tensor | None = None,
-) -> Tensor:
-    """A step's ``(7,)`` bool flags (indexed by ``_INVALID`` …): any NaN/+inf weight
-    increment, any dead entry, the model's dynamics and mode log-weights bad, the given
-    belief's :func:`_belief_flags`, any entry to resample (False if ``resample`` is None)."""
-    wanted = resample.any() if resample is not None else torch.zeros_like(bad_dynamics)
-    head = torch.stack([invalid.any(), dead.any(), bad_dynamics, bad_mode_weight])
-    return torch.cat([head, belief_flags, wanted.unsqueeze(0)])
-
-
-def _read_flags(flags: Tensor) -> list[bool]:
-    """A step's :func:`_flags` read (one host synchronization), raising the error they call
-    for."""
-    read: list[bool] = flags.tolist()
-    # The given belief's and the model's faults come first: they make the weights NaN too.
-    if read[_BAD_WEIGHTS]:
-        raise ValueError("belief: log_weights and log_evidence must not hold NaN or +inf")
-    if read[_BAD_MODES]:
-        raise ValueError("belief: modes must lie in [0, K), the model's modes")
-    if read[_BAD_MODE_WEIGHT]:
-        raise ValueError("model: mode_dynamics().mode_log_weight: contains NaN or +inf")
-    if read[_BAD_DYNAMICS]:
-        raise ValueError("model: mode_dynamics() returned NaN or inf")
-    if read[_INVALID]:
-        raise ValueError(_INVALID_WEIGHTS)
-    return read
-
-
-def _gather_states(index: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
-    """Select particles along the last dim of batch-last states: ``index (*B, N)``."""
-    mean = mean.gather(-1, index.expand(mean.shape[0], *index.shape))
-    cov = cov.gather(-1, index.expand(cov.shape[0], cov.shape[1], *index.shape))
-    return mean, cov
-
-
-def _gather(
-    index: Tensor, modes: Tensor, history: Tensor, mean: Tensor, cov: Tensor
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Resample modes ``(*B, N)``, history ``(*B, N, L+1)`` and batch-last states by ``index``."""
-    modes = modes.gather(-1, index)
-    history = history.gather(-2, index.unsqueeze(-1).expand(*history.shape))
-    mean, cov = _gather_states(index, mean, cov)
-    return modes, history, mean, cov

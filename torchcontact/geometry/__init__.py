@@ -1,4 +1,9 @@
-"""Geometry: planar polygons, half-planes, rigid transforms, quaternions and contact slots."""
+"""Geometry: planar polygons, half-planes, rigid transforms, quaternions and contact slots.
+
+``TIE_TOLERANCE`` is the relative tolerance (of the longest edge) within which the slot
+generation (:func:`polygon_slots`) takes two edges as equally close; simulators that find the
+closest edges themselves use it too.
+"""
 
 from torchcontact.geometry._quaternion import (
     quat_conj,
@@ -18,6 +23,7 @@ from torchcontact.geometry._se2 import (
 )
 from torchcontact.geometry._shapes import HalfPlane, Polygon
 from torchcontact.geometry._slots import (
+    TIE_TOLERANCE,
     SlotGeometry,
     concat_slots,
     halfplane_slots,
@@ -25,6 +31,7 @@ from torchcontact.geometry._slots import (
 )
 
 __all__ = [
+    "TIE_TOLERANCE",
     "HalfPlane",
     "Polygon",
     "SlotGeometry",

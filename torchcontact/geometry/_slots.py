@@ -16,7 +16,7 @@ from torchcontact.geometry._se2 import perpendicular
 from torchcontact.geometry._shapes import HalfPlane
 
 #: Relative tolerance (of the longest edge) within which two edges are equally close.
-_TIE_TOLERANCE = 1e-9
+TIE_TOLERANCE = 1e-9
 
 
 @dataclass(frozen=True, eq=False)
@@ -86,7 +86,7 @@ def polygon_slots(vertices: Tensor, other: Tensor, *, margin: float) -> SlotGeom
     phi = distance.amax(dim=-1)
     # A vertex exactly at a corner is equally far from both edges there (aligned boxes side by
     # side): take the edge that faces the vertex from the other polygon's centre.
-    tie = distance >= phi.unsqueeze(-1) - _TIE_TOLERANCE * length.squeeze(-1).amax(
+    tie = distance >= phi.unsqueeze(-1) - TIE_TOLERANCE * length.squeeze(-1).amax(
         -1, keepdim=True
     ).unsqueeze(-1)
     from_center = vertices - other.mean(dim=-2, keepdim=True)

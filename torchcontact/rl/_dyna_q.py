@@ -701,7 +701,7 @@ class DynaQ:
             graph = ManipulationGraph.from_json(text)
         except ValueError as error:
             raise ValueError(f"state_dict graph: {error}") from None
-        initial_value = state_dict.get("initial_value", 0.0)  # absent before it existed
+        initial_value = state_dict.get("initial_value", 0.0)  # a state dict without it: 0
         self._initial_value = check_real("state_dict initial_value", initial_value)
         self._exploration = _check_exploration(
             "state_dict exploration", state_dict.get("exploration", "uniform")
