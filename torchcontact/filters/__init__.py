@@ -25,6 +25,7 @@ from torchcontact.filters._manifold import (
     SE2Pose,
     SE3Pose,
 )
+from torchcontact.filters._projection import project_out_of_contact
 from torchcontact.filters._rbpf import RBPF, Proposal, RBPFBelief, SwitchingModel
 from torchcontact.filters._resampling import (
     ResamplingMethod,
@@ -64,6 +65,7 @@ __all__ = [
     "kf_predict",
     "kf_update",
     "optimal_resample",
+    "project_out_of_contact",
     "quat_exp",
     "quat_log",
     "resample",
