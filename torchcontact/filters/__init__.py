@@ -1,7 +1,8 @@
 """Bayesian filters: Gaussian beliefs, Kalman/extended Kalman filters on Euclidean spaces and
 pose manifolds, the Rauch–Tung–Striebel smoother, resampling, linear switching models, and the
 Rao-Blackwellized particle filter that tracks discrete contact modes with a Kalman filter per
-particle.
+particle (with :func:`project_out_of_contact`, its constrained update out of the bodies), and
+the baseline :class:`SimulatorParticleFilter` that steps its particles through the simulator.
 
 Everything is functional (``predict(belief, ...) -> belief``), batched over leading dims and
 differentiable; float32 and float64 both work.
@@ -33,6 +34,11 @@ from torchcontact.filters._resampling import (
     optimal_resample,
     resample,
 )
+from torchcontact.filters._simulator_pf import (
+    ParticleLogLikelihood,
+    SimulatorParticleFilter,
+    SimulatorPFBelief,
+)
 from torchcontact.filters._smoother import rts_smooth
 from torchcontact.filters._switching import LinearSwitchingModel, ModeDynamics
 from torchcontact.geometry import quat_exp, quat_log, wrap_angle
@@ -50,12 +56,15 @@ __all__ = [
     "Manifold",
     "Measurement",
     "ModeDynamics",
+    "ParticleLogLikelihood",
     "PlanarContactModel",
     "Proposal",
     "RBPFBelief",
     "ResamplingMethod",
     "SE2Pose",
     "SE3Pose",
+    "SimulatorPFBelief",
+    "SimulatorParticleFilter",
     "SwitchingModel",
     "collect_modes",
     "effective_sample_size",
