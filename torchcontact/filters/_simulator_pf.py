@@ -35,12 +35,16 @@ class SimulatorPFBelief:
         log_weights: ``(*B, N)`` normalized log-weights (``logsumexp == 0``).
         log_evidence: ``(*B,)`` running :math:`\\log \\hat p(y_{1:t})`; ``-inf`` once a step
             gave every particle weight zero.
+        stepped: whether a step made the belief (its particles are then resampled by the
+            next step); ``False`` for the prior's independent draws of
+            :meth:`SimulatorParticleFilter.init`.
     """
 
     particles: Tensor
     modes: Tensor
     log_weights: Tensor
     log_evidence: Tensor
+    stepped: bool
 
     @property
     def batch_shape(self) -> torch.Size:
@@ -70,7 +74,7 @@ class SimulatorParticleFilter:
     One :meth:`step` (Gordon, Salmond and Smith 1993):
 
     1. resample the particles with ``resampling`` (:func:`~torchcontact.filters.resample`),
-       unless every weight is equal (as after :meth:`init`): resampling would only add noise;
+       except the prior's draws of :meth:`init` (independent and equally weighted);
     2. step every particle through the simulator under the step's kinematic ``control``
        (its per-slot modes are the simulator's first guess), then add process noise
        :math:`w \sim N(0, \mathrm{diag}(\sigma_w^2))`;
@@ -143,6 +147,7 @@ class SimulatorParticleFilter:
             modes=torch.zeros(*batch, N, self.scene.num_slots, dtype=torch.long),
             log_weights=torch.full((*batch, N), -math.log(N), dtype=prior.dtype),
             log_evidence=torch.zeros(batch, dtype=prior.dtype),
+            stepped=False,
         )
 
     def step(
@@ -186,9 +191,8 @@ class SimulatorParticleFilter:
                 like_name="belief",
             )
         mode = belief.modes
-        lw = belief.log_weights
-        if not bool((lw == lw[..., :1]).all()):
-            index = resample(lw, method=self.resampling, generator=generator)
+        if belief.stepped:
+            index = resample(belief.log_weights, method=self.resampling, generator=generator)
             x = torch.gather(x, -2, index[..., None].expand(*batch, N, 6))
             mode = torch.gather(mode, -2, index[..., None].expand(*batch, N, mode.shape[-1]))
         simulator = Simulator(self.scene)
@@ -204,8 +208,8 @@ class SimulatorParticleFilter:
         # A particle whose step no solver solved gets weight zero; its numbers are replaced
         # by finite ones so that they cannot poison the weighted sums.
         unsolved = result.solver == UNSOLVED
-        stepped = torch.cat([result.state.q[..., 0, :], result.state.v[..., 0, :]], -1)
-        x = torch.where(unsolved[..., None], x, stepped)
+        simulated = torch.cat([result.state.q[..., 0, :], result.state.v[..., 0, :]], -1)
+        x = torch.where(unsolved[..., None], x, simulated)
         noise = self.process_std.to(x)
         x = x + noise * torch.randn(*batch, N, 6, generator=generator, dtype=x.dtype)
         mode = torch.where(unsolved[..., None], 0, result.mode)
@@ -237,4 +241,5 @@ class SimulatorParticleFilter:
             modes=mode,
             log_weights=torch.log_softmax(log_w, -1),
             log_evidence=belief.log_evidence + increment,
+            stepped=True,
         )
