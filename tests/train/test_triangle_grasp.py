@@ -1,4 +1,5 @@
-"""The triangle-grasp tracking experiment: end to end on a tiny budget, and its pieces."""
+"""The triangle-grasp script: end to end on a tiny budget, its command line and its argument
+checks (the pipeline's pieces are tested in tests/experiments, tests/filters and tests/states)."""
 
 from __future__ import annotations
 
@@ -14,9 +15,6 @@ import pytest
 import torch
 
 from tests.train import load_script
-from torchcontact.filters import RBPF, Gaussian, PlanarContactModel
-
-F64 = torch.float64
 
 
 @pytest.fixture(scope="module")
@@ -86,62 +84,6 @@ def test_plain_pf_is_calibrated_to_the_rbpf_time(result: dict) -> None:
 def test_ground_truth_stays_above_the_table(result: dict) -> None:
     assert result["min_height"] > 0.0
     assert result["min_vertex_height"] > -1e-3  # at most the LCP's sub-millimetre slack
-
-
-def _flat_belief(module: ModuleType, heights: list[float]) -> tuple[PlanarContactModel, object]:
-    """A one-mode model and a belief whose particles rest flat with their base at ``heights``."""
-    scene = module.triangle_scene(0.5)
-    lift = module.HEIGHT / 3  # centroid above the base
-    model = PlanarContactModel(
-        scene=scene,
-        modes=torch.zeros(1, scene.num_slots, dtype=torch.long),
-        Q=1e-8 * torch.eye(6, dtype=F64),
-        R=1e-4 * torch.eye(3, dtype=F64),
-        transition=torch.ones(1, 1, dtype=F64),
-        initial=torch.ones(1, dtype=F64),
-    )
-    mean = torch.zeros(len(heights), 6, dtype=F64)
-    mean[:, 1] = torch.tensor(heights, dtype=F64) + lift
-    cov = torch.diag(torch.tensor([25e-6] * 2 + [1e-3] + [1e-4] * 3, dtype=F64))
-    prior = Gaussian(mean, cov.expand(len(heights), 6, 6))
-    return model, RBPF(model, 2, proposal="bootstrap").init(prior)
-
-
-@pytest.mark.bitwise("particles that do not penetrate are passed through untouched")
-def test_projection_lifts_penetrating_particles_onto_the_table(module: ModuleType) -> None:
-    model, belief = _flat_belief(module, [-0.002, 0.001])
-    fingers = torch.tensor([[-0.07, module.FINGER_Y, 0.0], [0.07, module.FINGER_Y, 0.0]])
-    projected = module.project_out_of_contact(
-        belief, model.scene, fingers.to(F64).expand(2, 2, 3), gap_sigma=1e-5
-    )
-    lift = module.HEIGHT / 3
-    before, after = belief.gaussians, projected.gaussians
-    # 2 mm under the table: lifted onto it (to well within the pseudo-measurement's 10 µm).
-    torch.testing.assert_close(
-        after.mean[0, :, 1], torch.full((2,), lift, dtype=F64), atol=2e-5, rtol=0
-    )
-    torch.testing.assert_close(after.mean[0, :, 2], torch.zeros(2, dtype=F64), atol=1e-6, rtol=0)
-    assert bool((after.cov[0, :, 1, 1] < 1e-3 * before.cov[0, :, 1, 1]).all())
-    # 1 mm above the table: untouched.
-    torch.testing.assert_close(after.mean[1], before.mean[1], atol=0, rtol=0)
-    torch.testing.assert_close(after.cov[1], before.cov[1], atol=0, rtol=0)
-    torch.testing.assert_close(projected.log_weights, belief.log_weights, atol=0, rtol=0)
-    with pytest.raises(ValueError, match="gap_sigma"):
-        module.project_out_of_contact(belief, model.scene, fingers.to(F64).expand(2, 2, 3), 0.0)
-
-
-def test_mode_labels_and_touch_codes(module: ModuleType) -> None:
-    scene = module.triangle_scene(0.5)
-    mode = torch.zeros(scene.num_slots, dtype=torch.long)
-    assert module.mode_label(scene, mode) == "free"
-    mode[0], mode[1] = 1, 1  # two triangle vertices stick on the table
-    assert module.mode_label(scene, mode) == "table 2 stick"
-    right = next(g for g in scene.slot_groups if scene.bodies[g.receiver].name == "right")
-    mode[right.start] = 3  # a right-finger corner slides on the triangle
-    assert module.mode_label(scene, mode) == "table 2 stick, right 1 slide"
-    bits = {name: 1 << scene.index(name) for name in ("table", "left", "right")}
-    codes = module.touch_codes(scene, torch.stack([torch.zeros_like(mode), mode]))
-    assert codes.tolist() == [0, bits["table"] | bits["right"]]
 
 
 def test_help_lists_the_arguments(module: ModuleType, capsys: pytest.CaptureFixture[str]) -> None:

@@ -9,6 +9,14 @@ raw observation, QMDP over the RBPF belief, neural Q on :func:`belief_features`)
 :func:`check_int`, :func:`check_real`, :func:`check_choice` and :func:`check_name` before any
 work, get a new run folder or the one to resume with :func:`open_run`, and write checkpoints
 atomically with :func:`save_checkpoint`.
+
+Triangle grasp (:mod:`torchcontact.sim`): :func:`grasp_trials` simulates grasps of a triangle
+that the camera loses sight of, with tactile readings and the mode table of training
+rollouts (:class:`TriangleGrasp` holds the settings); :func:`run_estimators` tracks them with
+the contact RBPF (:func:`grasp_contact_model`), the simulator particle filter, an EKF and held
+vision; :func:`evaluate_tracking`, :func:`grasp_summary` and :func:`tracking_table` score them
+and :func:`plot_grasp_snapshots`, :func:`plot_tracking_errors` and :func:`plot_mode_timeline`
+draw them.
 """
 
 from torchcontact._checks import check_choice, check_int, check_name, check_real
@@ -39,31 +47,87 @@ from torchcontact.experiments._peg_learning import (
     run_round,
 )
 from torchcontact.experiments._q_lookup import QLookup
+from torchcontact.experiments._triangle_grasp import (
+    GRASP_METHODS,
+    EstimatorRuns,
+    GraspTrials,
+    Timing,
+    TriangleGrasp,
+    calibrate_pf,
+    evaluate_tracking,
+    grasp_contact_model,
+    grasp_schedule,
+    grasp_summary,
+    grasp_tactile_readings,
+    grasp_trials,
+    min_vertex_height,
+    run_ekf,
+    run_estimators,
+    run_pf,
+    run_rbpf,
+    run_vision,
+    simulate_grasps,
+    timed,
+    tracking_table,
+    triangle_scene,
+    triangle_tactile_array,
+)
+from torchcontact.experiments._triangle_grasp_plots import (
+    plot_grasp_snapshots,
+    plot_mode_timeline,
+    plot_tracking_errors,
+)
 
 __all__ = [
     "CHECKPOINT",
+    "GRASP_METHODS",
     "LOCATION",
     "NUM_BELIEF_FEATURES",
     "SETTINGS",
+    "EstimatorRuns",
     "Evaluation",
+    "GraspTrials",
     "PegLearning",
     "PotentialShaping",
     "QLookup",
     "RoundResult",
     "Setting",
+    "Timing",
+    "TriangleGrasp",
     "belief_features",
+    "calibrate_pf",
     "check_choice",
     "check_int",
     "check_name",
     "check_real",
     "evaluate",
     "evaluate_settings",
+    "evaluate_tracking",
+    "grasp_contact_model",
+    "grasp_schedule",
+    "grasp_summary",
+    "grasp_tactile_readings",
+    "grasp_trials",
     "load_checkpoint",
+    "min_vertex_height",
     "new_run_dir",
     "open_run",
+    "plot_grasp_snapshots",
+    "plot_mode_timeline",
+    "plot_tracking_errors",
     "read_checkpoint",
     "results_table",
     "round_seed",
+    "run_ekf",
+    "run_estimators",
+    "run_pf",
+    "run_rbpf",
     "run_round",
+    "run_vision",
     "save_checkpoint",
+    "simulate_grasps",
+    "timed",
+    "tracking_table",
+    "triangle_scene",
+    "triangle_tactile_array",
 ]

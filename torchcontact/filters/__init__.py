@@ -1,7 +1,8 @@
 """Bayesian filters: Gaussian beliefs, Kalman/extended Kalman filters on Euclidean spaces and
 pose manifolds, the Rauch–Tung–Striebel smoother, resampling, linear switching models, and the
 Rao-Blackwellized particle filter that tracks discrete contact modes with a Kalman filter per
-particle.
+particle (with :func:`project_out_of_contact`, its constrained update out of the bodies), and
+the baseline :class:`SimulatorParticleFilter` that steps its particles through the simulator.
 
 Everything is functional (``predict(belief, ...) -> belief``), batched over leading dims and
 differentiable; float32 and float64 both work.
@@ -25,6 +26,7 @@ from torchcontact.filters._manifold import (
     SE2Pose,
     SE3Pose,
 )
+from torchcontact.filters._projection import project_out_of_contact
 from torchcontact.filters._rbpf import RBPF, Proposal
 from torchcontact.filters._rbpf_belief import RBPFBelief, SwitchingModel
 from torchcontact.filters._resampling import (
@@ -32,6 +34,11 @@ from torchcontact.filters._resampling import (
     effective_sample_size,
     optimal_resample,
     resample,
+)
+from torchcontact.filters._simulator_pf import (
+    ParticleLogLikelihood,
+    SimulatorParticleFilter,
+    SimulatorPFBelief,
 )
 from torchcontact.filters._smoother import rts_smooth
 from torchcontact.filters._switching import LinearSwitchingModel, ModeDynamics
@@ -50,12 +57,15 @@ __all__ = [
     "Manifold",
     "Measurement",
     "ModeDynamics",
+    "ParticleLogLikelihood",
     "PlanarContactModel",
     "Proposal",
     "RBPFBelief",
     "ResamplingMethod",
     "SE2Pose",
     "SE3Pose",
+    "SimulatorPFBelief",
+    "SimulatorParticleFilter",
     "SwitchingModel",
     "collect_modes",
     "effective_sample_size",
@@ -65,6 +75,7 @@ __all__ = [
     "kf_predict",
     "kf_update",
     "optimal_resample",
+    "project_out_of_contact",
     "quat_exp",
     "quat_log",
     "resample",

@@ -8,7 +8,8 @@ sticking/sliding status — separately for the robot and the environment. A
 (:class:`PoseGrid`). The :class:`ManipulationGraph` holds transition statistics between
 manipulation states under actions and exports the filter's mode-transition model and the
 sampling model of Dyna-Q. A :class:`TactileArray` simulates binary contact sensors and gives
-the likelihood of their readings under each contact state.
+the likelihood of their readings under each contact state. :func:`mode_label`,
+:func:`touch_codes` and :func:`mode_ids` read the simulator's per-slot mode vectors.
 
 Everything starts from a :class:`ContactSet`: batched contact tensors of one time step.
 """
@@ -26,6 +27,7 @@ from torchcontact.states._manipulation_state import (
     manipulation_states,
 )
 from torchcontact.states._registry import ContactStateRegistry, StateTable, UnknownStateError
+from torchcontact.states._slot_modes import mode_ids, mode_label, touch_codes
 from torchcontact.states._tactile import TactileArray, rectangle_sensors
 
 __all__ = [
@@ -44,8 +46,11 @@ __all__ = [
     "UnknownStateError",
     "contact_states",
     "manipulation_states",
+    "mode_ids",
+    "mode_label",
     "object_contacts",
     "planar_box_contacts",
     "rectangle_sensors",
     "relative_pose",
+    "touch_codes",
 ]
