@@ -39,7 +39,14 @@ from torchcontact.contact import (
     solve_active_set,
     solve_mode,
 )
-from torchcontact.geometry import TIE_TOLERANCE, HalfPlane, Polygon, SlotGeometry
+from torchcontact.geometry import (
+    TIE_TOLERANCE,
+    HalfPlane,
+    Polygon,
+    SlotGeometry,
+    cross2,
+    perpendicular,
+)
 from torchcontact.sim import (
     SOLVED_BY_EXACT_MODE,
     SOLVED_BY_GUESS,
@@ -190,14 +197,6 @@ def _build_layout(scene: Scene) -> _Layout:
     )
 
 
-def _perpendicular(u: Tensor) -> Tensor:
-    return torch.stack([-u[..., 1], u[..., 0]], dim=-1)
-
-
-def _cross(a: Tensor, b: Tensor) -> Tensor:
-    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-
-
 @dataclass(frozen=True, eq=False)
 class CompactSimulator:
     """A drop-in, faster :meth:`~torchcontact.sim.Simulator.step` for scenes with many slots.
@@ -328,7 +327,7 @@ class CompactSimulator:
             length = edge.norm(dim=-1, keepdim=True)
             safe = torch.where(valid.unsqueeze(-1), length, torch.ones_like(length))
             direction = edge / safe
-            outward = -_perpendicular(direction)
+            outward = -perpendicular(direction)
             relative = vertices.unsqueeze(-2) - other.unsqueeze(-3)  # (B, Gp, V, E, 2)
             distance = (relative * outward.unsqueeze(-3)).sum(-1)  # (B, Gp, V, E)
             lowest = torch.finfo(distance.dtype).min
@@ -377,7 +376,7 @@ class CompactSimulator:
         poses = self._polygon_poses(state)
         geometry = self._geometry(poses)
         normal = geometry.normals
-        tangent = _perpendicular(normal)
+        tangent = perpendicular(normal)
         rows_n, rows_t = [], []
         known_n = torch.zeros_like(geometry.phi)
         known_t = torch.zeros_like(geometry.phi)
@@ -387,13 +386,13 @@ class CompactSimulator:
         )
         for polygon, dynamic, kinematic, sign in members:
             offset = geometry.points - poses[:, polygon, :2]  # (B, K, 2)
-            row_n = torch.cat([normal, _cross(offset, normal).unsqueeze(-1)], dim=-1)
-            row_t = torch.cat([tangent, _cross(offset, tangent).unsqueeze(-1)], dim=-1)
+            row_n = torch.cat([normal, cross2(offset, normal).unsqueeze(-1)], dim=-1)
+            row_t = torch.cat([tangent, cross2(offset, tangent).unsqueeze(-1)], dim=-1)
             rows_n.append(sign * dynamic.unsqueeze(-1) * row_n.unsqueeze(-2))  # (B, K, Nd, 3)
             rows_t.append(sign * dynamic.unsqueeze(-1) * row_t.unsqueeze(-2))
             if kinematic.shape[-1]:
                 twist = kinematic @ control  # (B, K, 3)
-                velocity = twist[..., :2] + twist[..., 2:3] * _perpendicular(offset)
+                velocity = twist[..., :2] + twist[..., 2:3] * perpendicular(offset)
                 known_n = known_n + sign * (velocity * normal).sum(-1)
                 known_t = known_t + sign * (velocity * tangent).sum(-1)
         Jn = (rows_n[0] + rows_n[1]).flatten(-2)
