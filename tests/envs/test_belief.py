@@ -6,14 +6,15 @@ import numpy as np
 import pytest
 import torch
 
-from torchcontact.envs import PegInHole2DVector, PegInHoleConfig
-from torchcontact.envs._belief import (
+from torchcontact.envs import (
     PegControl,
+    PegInHole2DVector,
     PegInHoleBeliefModel,
+    PegInHoleConfig,
     PegInHoleFilter,
     PegTransitions,
-    compose,
 )
+from torchcontact.envs._belief_model import compose
 from torchcontact.experiments import PotentialShaping, QLookup, run_round
 from torchcontact.rl import DynaQ
 from torchcontact.states import ManipulationState
@@ -40,7 +41,7 @@ def test_vision_model_is_the_exact_pose_composition(
     observation = {"peg_pose": gripper, "gripper_pose": gripper, "tactile": np.zeros((5, 14))}
     belief = filt.init(observation)
     control = PegControl(
-        gripper_before=gripper, gripper_after=gripper, actions=torch.zeros(5, dtype=torch.long)
+        state_ids=belief.state_ids, gripper_after=gripper, actions=torch.zeros(5, dtype=torch.long)
     )
     dynamics = model.mode_dynamics(belief.rbpf, control)
     x = torch.randn(5, 3, generator=generator, dtype=torch.float64) * 0.05
@@ -113,6 +114,7 @@ def test_restart_replaces_exactly_the_entries_of_new_episodes(
     restarted = filt.restart(belief, where, other)
     fresh = filt.init(other)
     pairs = [(restarted.gripper, fresh.gripper, belief.gripper)]
+    pairs.append((restarted.state_ids, fresh.state_ids, belief.state_ids))
     for name in ("modes", "log_weights", "log_evidence", "history", "degenerate"):
         pairs.append(tuple(getattr(b.rbpf, name) for b in (restarted, fresh, belief)))
     for name in ("gaussians", "prior"):

@@ -15,10 +15,11 @@ from torch import Tensor
 
 from torchcontact.envs import (
     NUM_CONTACT_CLASSES,
+    PegBelief,
     PegInHole2DVector,
     PegInHoleConfig,
+    PegInHoleFilter,
 )
-from torchcontact.envs._belief import PegBelief, PegInHoleFilter
 from torchcontact.experiments._q_lookup import QLookup
 from torchcontact.rl import QNetwork
 
@@ -37,12 +38,10 @@ def belief_features(filt: PegInHoleFilter, belief: PegBelief, lookup: QLookup) -
     the log standard deviation of the pose (3), the entropy of the contact-class marginal,
     the effective sample size over ``N``, and the ``K = 24`` class marginals.
     """
-    states = filt.model.task.states
     rbpf = belief.rbpf
-    pose = filt.particle_poses(belief)  # (B, N, 3)
-    weights = rbpf.log_weights.exp()
-    probabilities = lookup.probabilities(states.ids(pose, rbpf.modes), weights)
-    relative = states.relative_pose(pose)
+    ids, weights = filt.particle_states(belief)
+    probabilities = lookup.probabilities(ids, weights)
+    relative = filt.model.task.states.relative_pose(filt.particle_poses(belief))  # (B, N, 3)
     mean = (weights.unsqueeze(-1) * relative).sum(1)
     spread = (weights.unsqueeze(-1) * (relative - mean.unsqueeze(1)) ** 2).sum(1)
     variance = spread + (

@@ -10,8 +10,7 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-from torchcontact.envs import PegInHole2DVector, PegInHoleStates
-from torchcontact.envs._belief import PegTransitions
+from torchcontact.envs import PegInHole2DVector, PegInHoleStates, PegTransitions
 from torchcontact.experiments._q_lookup import QLookup
 from torchcontact.rl import DynaQ, Exploration, StepSize
 from torchcontact.states import ManipulationState
