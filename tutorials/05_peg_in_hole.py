@@ -49,6 +49,7 @@ from torchcontact.experiments import (
     PegLearning,
     QLookup,
     evaluate_settings,
+    qmdp_actions,
     results_table,
     round_seed,
     run_round,
@@ -189,8 +190,7 @@ belief = filt.init(observation)
 frames = []
 done = False
 while not done:
-    values = lookup.qmdp(*filt.particle_states(belief))
-    action = values.argmax(-1).numpy()
+    action = qmdp_actions(lookup, *filt.particle_states(belief)).numpy()
     bottoms = task.states.relative_pose(filt.particle_poses(belief)[0])
     measured = task.states.relative_pose(torch.as_tensor(observation["peg_pose"]))[0]
     frames.append(

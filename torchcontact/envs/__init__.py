@@ -5,8 +5,9 @@ friction between two servoed fingers, so the peg can slip and turn in the grasp 
 pushes on it. :class:`PegInHole2DVector` steps a batch of them as one tensor batch. Their
 manipulation states (:class:`PegInHoleStates`) are integer ids computed in one vectorized pass
 from poses (true or estimated) and contact classes. :class:`PegInHoleFilter` tracks the peg in
-the grasp with the RBPF over contact classes, on a :class:`PegInHoleBeliefModel` fitted from
-recorded steps (:class:`PegTransitions`) and the manipulation graph.
+the grasp with the RBPF over contact classes (init, step and restart on the environment's noisy
+observations), on a :class:`PegInHoleBeliefModel`: the switching model fitted from recorded
+steps (:class:`PegTransitions`) and the manipulation graph.
 
 Importing this package registers ``"torchcontact/PegInHole2D-v0"`` with gymnasium (also for
 ``gymnasium.make_vec(..., vectorization_mode="vector_entry_point")``).
@@ -16,13 +17,8 @@ from __future__ import annotations
 
 import gymnasium
 
-from torchcontact.envs._belief import (
-    PegBelief,
-    PegControl,
-    PegInHoleBeliefModel,
-    PegInHoleFilter,
-    PegTransitions,
-)
+from torchcontact.envs._belief_filter import PegBelief, PegInHoleFilter
+from torchcontact.envs._belief_model import PegControl, PegInHoleBeliefModel
 from torchcontact.envs._config import PegInHoleConfig
 from torchcontact.envs._engine import CompactSimulator
 from torchcontact.envs._env import PegInHole2D
@@ -48,6 +44,7 @@ from torchcontact.envs._task import (
     Physics,
     build_scene,
 )
+from torchcontact.envs._transitions import PegTransitions
 from torchcontact.envs._vector import PegInHole2DVector
 
 #: Gymnasium id of :class:`PegInHole2D`.

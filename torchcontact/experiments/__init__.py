@@ -2,13 +2,13 @@
 
 Peg-in-hole (:mod:`torchcontact.envs`): :func:`run_round` trains (or evaluates) a
 :class:`~torchcontact.rl.DynaQ` agent on rounds of batched episodes with
-:class:`PotentialShaping` and records the steps (:class:`PegLearning` holds the settings
-that learn the task); :func:`evaluate` executes the learned policy under uncertainty (oracle,
-raw observation, QMDP over the RBPF belief, neural Q on :func:`belief_features`), with
-:class:`QLookup` mapping manipulation states to Q values. Scripts check their arguments with
-:func:`check_int`, :func:`check_real`, :func:`check_choice` and :func:`check_name` before any
-work, get a new run folder or the one to resume with :func:`open_run`, and write checkpoints
-atomically with :func:`save_checkpoint`.
+:class:`PotentialShaping` and records the steps (:class:`PegLearning` holds the settings that
+learn the task); :func:`evaluate` executes the learned policy under uncertainty (oracle, raw
+observation, QMDP over the RBPF belief with :func:`qmdp_actions`, neural Q on
+:func:`belief_features`), with :class:`QLookup` mapping manipulation-state ids to Q rows.
+Scripts check their arguments with :func:`check_int`, :func:`check_real`, :func:`check_choice`
+and :func:`check_name` before any work, get a new run folder or the one to resume with
+:func:`open_run`, and write checkpoints atomically with :func:`save_checkpoint`.
 
 Triangle grasp (:mod:`torchcontact.sim`): :func:`grasp_trials` simulates grasps of a triangle
 that the camera loses sight of, with tactile readings and the mode table of training
@@ -37,6 +37,7 @@ from torchcontact.experiments._peg_execution import (
     belief_features,
     evaluate,
     evaluate_settings,
+    qmdp_actions,
     results_table,
 )
 from torchcontact.experiments._peg_learning import (
@@ -115,6 +116,7 @@ __all__ = [
     "plot_grasp_snapshots",
     "plot_mode_timeline",
     "plot_tracking_errors",
+    "qmdp_actions",
     "read_checkpoint",
     "results_table",
     "round_seed",

@@ -21,7 +21,7 @@ from torchcontact.envs import (
     PegInHoleFilter,
 )
 from torchcontact.experiments._q_lookup import QLookup
-from torchcontact.rl import QNetwork
+from torchcontact.rl import QNetwork, greedy_action, qmdp_action
 
 #: The execution settings compared by :func:`evaluate`.
 Setting = Literal["oracle", "raw", "qmdp", "neural"]
@@ -38,12 +38,10 @@ def belief_features(filt: PegInHoleFilter, belief: PegBelief, lookup: QLookup) -
     the log standard deviation of the pose (3), the entropy of the contact-class marginal,
     the effective sample size over ``N``, and the ``K = 24`` class marginals.
     """
-    states = filt.model.task.states
     rbpf = belief.rbpf
-    pose = filt.particle_poses(belief)  # (B, N, 3)
-    weights = rbpf.log_weights.exp()
-    probabilities = lookup.probabilities(states.ids(pose, rbpf.modes), weights)
-    relative = states.relative_pose(pose)
+    ids, weights = filt.particle_states(belief)
+    probabilities = lookup.probabilities(ids, weights)
+    relative = filt.model.task.states.relative_pose(filt.particle_poses(belief))  # (B, N, 3)
     mean = (weights.unsqueeze(-1) * relative).sum(1)
     spread = (weights.unsqueeze(-1) * (relative - mean.unsqueeze(1)) ** 2).sum(1)
     variance = spread + (
@@ -64,6 +62,35 @@ def belief_features(filt: PegInHoleFilter, belief: PegBelief, lookup: QLookup) -
         ],
         dim=-1,
     )
+
+
+def qmdp_actions(
+    lookup: QLookup, ids: Tensor, weights: Tensor, *, generator: torch.Generator | None = None
+) -> Tensor:
+    r"""The QMDP actions ``argmax_a Σ_i w_i Q(m_i, a)`` of particles in states ``m_i``.
+
+    :func:`~torchcontact.rl.qmdp_action` of the agent's table under the belief
+    :meth:`QLookup.probabilities` over its states, with its tie rule: the lowest action index,
+    or with ``generator`` a uniformly random one of the tied actions
+    (:func:`~torchcontact.rl.greedy_action`).
+
+    Args:
+        lookup: the tabular Q values; every state must have a row (:attr:`QLookup.complete`,
+            e.g. ``nearest=True``), so that every belief has values.
+        ids: ``(B, N)`` manipulation-state ids of the particles
+            (:meth:`~torchcontact.envs.PegInHoleFilter.particle_states`).
+        weights: ``(B, N)`` their normalized weights.
+        generator: the random source of the tie-breaking keys; None for the lowest index.
+
+    Returns:
+        ``(B,)`` long actions.
+
+    Raises:
+        ValueError: ``lookup`` leaves a state without a row, or ``weights`` do not sum to 1.
+    """
+    if not lookup.complete:
+        raise ValueError("lookup must give every state a row (QLookup(..., nearest=True)) for QMDP")
+    return qmdp_action(lookup.table, lookup.probabilities(ids, weights), generator=generator)
 
 
 @dataclass(frozen=True)
@@ -109,16 +136,21 @@ def evaluate(
     * ``"raw"``: greedy on the state of the raw observation: the camera's pose and the
       contact class that best explains the tactile readings
       (:meth:`~torchcontact.envs.PegInHoleBeliefModel.most_likely_classes` of ``filt``'s model);
-    * ``"qmdp"``: QMDP over the particles of ``filt`` (:meth:`QLookup.qmdp`);
+    * ``"qmdp"``: QMDP over the particles of ``filt`` (:func:`qmdp_actions`);
     * ``"neural"``: ``network`` on :func:`belief_features` of ``filt``'s belief.
 
-    Ties are broken at random (seeded by ``seed``).
+    Every setting takes the action of highest value with one tie rule,
+    :func:`~torchcontact.rl.greedy_action` with a generator seeded by ``seed``: exactly tied
+    actions are chosen uniformly at random by keys drawn from that generator (one per action
+    and episode at every decision, before the filter's step draws from it), nothing is added to
+    the values. The particles' manipulation-state ids are computed once per step, by the filter
+    (:attr:`~torchcontact.envs.PegBelief.state_ids`).
 
     Args:
         env: a vector environment with ``observation="noisy"``.
         setting: one of :data:`SETTINGS`.
         lookup: the tabular Q values.
-        seed: seed of the episodes and of the filter.
+        seed: seed of the episodes and of the generator of the filter and the tie-breaking.
         filt: the filter (``"qmdp"``, ``"neural"``).
         network: the neural Q function (``"neural"``).
 
@@ -147,23 +179,26 @@ def evaluate(
     while live.any():
         start = time.perf_counter()
         if setting == "oracle":
-            values, _ = lookup.values(torch.as_tensor(info["manipulation_state_id"]))
+            true_ids = torch.as_tensor(info["manipulation_state_id"])
+            choice = greedy_action(lookup.values(true_ids)[0], generator=generator)
         elif setting == "raw":
             assert filt is not None
             readings = torch.as_tensor(observation["tactile"]).bool()
             classes = filt.model.most_likely_classes(readings)
-            values, _ = lookup.values(states.ids(torch.as_tensor(observation["peg_pose"]), classes))
+            raw_ids = states.ids(torch.as_tensor(observation["peg_pose"]), classes)
+            choice = greedy_action(lookup.values(raw_ids)[0], generator=generator)
+        elif setting == "qmdp":
+            assert belief is not None
+            assert filt is not None
+            choice = qmdp_actions(lookup, *filt.particle_states(belief), generator=generator)
         else:
             assert belief is not None
             assert filt is not None
-            if setting == "qmdp":
-                values = lookup.qmdp(*filt.particle_states(belief))
-            else:
-                assert network is not None
-                with torch.no_grad():
-                    values = network(belief_features(filt, belief, lookup).to(network.table.dtype))
-        noise = 1e-9 * torch.rand(values.shape, generator=generator, dtype=torch.float64)
-        actions = (values.to(torch.float64) + noise).argmax(-1).numpy()
+            assert network is not None
+            with torch.no_grad():
+                features = belief_features(filt, belief, lookup).to(network.table.dtype)
+                choice = greedy_action(network(features), generator=generator)
+        actions = choice.numpy()
         seconds += time.perf_counter() - start
         next_observation, _, terminated, truncated, info = env.step(actions)
         observation = _noisy(next_observation)

@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 
 from torchcontact.envs import PegInHole2DVector, PegInHoleStates, PegTransitions
 from torchcontact.experiments._q_lookup import QLookup
-from torchcontact.rl import DynaQ, Exploration, StepSize
+from torchcontact.rl import DynaQ, Exploration, StepSize, greedy_action
 from torchcontact.states import ManipulationState
 
 
@@ -162,8 +162,9 @@ def run_round(
     :class:`~torchcontact.states.ManipulationState` key): ε-greedy and learning (each
     sub-environment's transitions in index order, shaped by ``shaping`` with the agent's
     discount factor) when ``learn``,
-    else greedy with random tie-breaking and no update, where states the agent never acted
-    from borrow the nearest known state's values (:class:`QLookup`).
+    else greedy (:func:`~torchcontact.rl.greedy_action`: ties broken at random by a generator
+    seeded with ``seed``) and no update, where states the agent never acted from borrow the
+    nearest known state's values (:class:`QLookup`).
 
     Args:
         env: the vector environment (any observation mode; the true state comes from infos).
@@ -190,8 +191,8 @@ def run_round(
     successes = np.zeros(B, dtype=bool)
     td_errors: list[float] = []
     parts: list[PegTransitions] = []
-    rng = np.random.default_rng(seed)
     lookup = None if learn else QLookup(agent, env.states)
+    generator = torch.Generator().manual_seed(seed)
     while live.any():
         if learn:
             actions = np.array(
@@ -199,8 +200,8 @@ def run_round(
             )
         else:
             assert lookup is not None
-            q = lookup.values(torch.as_tensor(info["manipulation_state_id"]))[0].numpy()
-            actions = np.argmax(q + 1e-9 * rng.random(q.shape), axis=1)
+            values, _ = lookup.values(torch.as_tensor(info["manipulation_state_id"]))
+            actions = greedy_action(values, generator=generator).numpy()
         _, reward, terminated, truncated, next_info = env.step(actions)
         next_states = keys(next_info)
         next_potential = shaping.potential(env.states, next_info["peg_pose"], depth)

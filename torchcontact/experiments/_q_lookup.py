@@ -1,4 +1,4 @@
-"""Tabular Q values by manipulation-state id, with a nearest-known-state fallback."""
+"""Q rows by manipulation-state id, with a nearest-known-state fallback."""
 
 from __future__ import annotations
 
@@ -11,6 +11,10 @@ from torchcontact.rl import DynaQ
 
 class QLookup:
     """The Q values of a :class:`DynaQ` agent indexed by manipulation-state id.
+
+    It maps state ids (true, observed, or a belief's particles) to rows of the agent's Q table;
+    the policies act on what it returns (greedy on :meth:`values`, QMDP on
+    :meth:`probabilities` with :func:`~torchcontact.rl.qmdp_action`).
 
     A state the agent never acted from (never visited, or only ever reached) has no Q values
     of its own. With ``nearest`` it borrows the row of the nearest *known* state (acted from,
@@ -40,6 +44,8 @@ class QLookup:
         self.known = self.row >= 0
         if nearest and known:
             self._borrow_nearest(states, ids)
+        #: Every state has a row (its own or borrowed): every belief has QMDP values.
+        self.complete = bool((self.row >= 0).all())
 
     def _borrow_nearest(self, states: PegInHoleStates, known_ids: Tensor) -> None:
         cells = torch.arange(states.num_cells) * NUM_CONTACT_CLASSES
@@ -86,9 +92,3 @@ class QLookup:
         w = torch.where(total > 0, w / total.clamp(min=1e-300), 0.0)
         out = torch.zeros(ids.shape[0], self.num_rows, dtype=weights.dtype)
         return out.scatter_add_(1, row.clamp(min=0), w)
-
-    def qmdp(self, ids: Tensor, weights: Tensor) -> Tensor:
-        """``(B, A)`` QMDP values ``Σ_i w_i Q(m_i, ·)`` over the particles with a row
-        (renormalized; zero if none has one): :meth:`probabilities` times the table, which is
-        also the QMDP head of a :class:`~torchcontact.rl.QNetwork` made ``from_table``."""
-        return self.probabilities(ids, weights) @ self.table

@@ -8,6 +8,7 @@ import torch
 from torch import Tensor
 
 from torchcontact._checks import all_finite, check_float
+from torchcontact.rl._greedy import greedy_action
 
 
 def qmdp_values(q_values: Tensor, probabilities: Tensor) -> Tensor:
@@ -66,18 +67,25 @@ def qmdp_values(q_values: Tensor, probabilities: Tensor) -> Tensor:
     return values
 
 
-def qmdp_action(q_values: Tensor, probabilities: Tensor) -> Tensor:
-    r"""The QMDP action ``a* = argmax_a Σ_i p_i Q(m_i, a)`` (the lowest index among ties).
+def qmdp_action(
+    q_values: Tensor, probabilities: Tensor, *, generator: torch.Generator | None = None
+) -> Tensor:
+    r"""The QMDP action ``a* = argmax_a Σ_i p_i Q(m_i, a)``.
+
+    :func:`greedy_action` of :func:`qmdp_values`: ties go to the lowest index, or, with
+    ``generator``, to a uniformly random one of the tied actions (reproducible keys drawn from
+    ``generator``).
 
     Args:
         q_values: ``(*Bq, K, A)`` Q values of the ``K`` discrete states.
         probabilities: ``(*Bp, K)`` belief over the states; ``*Bq`` and ``*Bp`` broadcast to
             ``*B``.
+        generator: the random source of the tie-breaking keys; None for the lowest index.
 
     Returns:
         ``(*B,)`` long actions.
 
     Raises:
-        ValueError: see :func:`qmdp_values`.
+        ValueError: see :func:`qmdp_values` and :func:`greedy_action`.
     """
-    return qmdp_values(q_values, probabilities).argmax(dim=-1)
+    return greedy_action(qmdp_values(q_values, probabilities), generator=generator)

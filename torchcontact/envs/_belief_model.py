@@ -1,36 +1,27 @@
-"""Belief tracking for the peg-in-hole task: an RBPF over contact classes, fed by the graph.
+"""The peg-in-hole belief model: a switching linear-Gaussian model fitted on recorded steps.
 
-The filter tracks the peg's pose *in the gripper frame* (the gripper's pose is known, the
-fingers' servo sets it), so that the measurement of a camera that sees the peg in the world is
-linear, and the peg's motion in the grasp, given its contact class, is a constant displacement
-plus noise: it stays put while held without other contact, it slides up the pads when pushed
-onto a surface, and so on. Each particle carries a contact class (the RBPF's mode) and a
-Gaussian over that pose; the mode transition of a particle comes from the manipulation graph
-at the particle's own manipulation state (its pose cell and contact class).
+The model the RBPF of :class:`~torchcontact.envs.PegInHoleFilter` runs on. Its state is the
+peg's pose *in the gripper frame* (the gripper's pose is known, the fingers' servo sets it), so
+that the measurement of a camera that sees the peg in the world is linear, and the peg's motion
+in the grasp, given its contact class, is a constant displacement plus noise: it stays put
+while held without other contact, it slides up the pads when pushed onto a surface, and so on.
+Each particle carries a contact class (the RBPF's mode) and a Gaussian over that pose; the mode
+transition of a particle comes from the manipulation graph at the particle's own manipulation
+state (its pose cell and contact class).
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 import torch
-from numpy.typing import NDArray
 from torch import Tensor
 
 from torchcontact.envs._states import NUM_CONTACT_CLASSES
 from torchcontact.envs._task import ACTION_NAMES, PegInHoleTask
-from torchcontact.filters import (
-    RBPF,
-    Gaussian,
-    ModeDynamics,
-    Proposal,
-    RBPFBelief,
-    ResamplingMethod,
-    kf_update,
-)
+from torchcontact.envs._transitions import PegTransitions, as_tensor
+from torchcontact.filters import Gaussian, ModeDynamics, RBPFBelief, kf_update
 from torchcontact.geometry import rotation_matrix, wrap_angle
 from torchcontact.states import ManipulationGraph
 
@@ -41,113 +32,20 @@ _NOISE_FLOOR = (2e-4**2, 2e-4**2, 3e-3**2)
 _UNSEEN_NOISE = (5e-3**2, 5e-3**2, 0.05**2)
 
 
-def _tensor(value: Any, dtype: torch.dtype) -> Tensor:
-    return torch.as_tensor(np.asarray(value), dtype=dtype)
-
-
-@dataclass(frozen=True, kw_only=True)
-class PegTransitions:
-    """Recorded environment steps of the peg-in-hole task (what the filter model is fit on).
-
-    Attributes:
-        grasp: ``(T, 3)`` the peg's pose in the gripper frame before the step.
-        next_grasp: ``(T, 3)`` the same after the step.
-        actions: ``(T,)`` long actions.
-        classes: ``(T,)`` long contact classes before the step.
-        next_classes: ``(T,)`` long contact classes after it.
-        next_triggered: ``(T, S)`` bool noise-free tactile readings after it.
-        first: ``(T,)`` bool, the step is the first of its episode (its ``grasp`` is a reset).
-    """
-
-    grasp: Tensor
-    next_grasp: Tensor
-    actions: Tensor
-    classes: Tensor
-    next_classes: Tensor
-    next_triggered: Tensor
-    first: Tensor
-
-    def __post_init__(self) -> None:
-        T = self.actions.shape[0]
-        expected = {
-            "grasp": (T, 3),
-            "next_grasp": (T, 3),
-            "actions": (T,),
-            "classes": (T,),
-            "next_classes": (T,),
-            "first": (T,),
-        }
-        for name, shape in expected.items():
-            value = getattr(self, name)
-            if not isinstance(value, Tensor) or tuple(value.shape) != shape:
-                raise ValueError(f"{name} must be a {shape} tensor, got {_shape(value)}")
-        if self.next_triggered.ndim != 2 or self.next_triggered.shape[0] != T:
-            raise ValueError(f"next_triggered must be (T, S), got {_shape(self.next_triggered)}")
-        if not bool(torch.isfinite(self.grasp).all() and torch.isfinite(self.next_grasp).all()):
-            raise ValueError("grasp and next_grasp must be finite")
-
-    @property
-    def num_steps(self) -> int:
-        """``T``, the number of recorded steps."""
-        return int(self.actions.shape[0])
-
-    @classmethod
-    def from_infos(
-        cls,
-        before: Mapping[str, NDArray[Any]],
-        actions: NDArray[np.int64],
-        after: Mapping[str, NDArray[Any]],
-        *,
-        valid: NDArray[np.bool_],
-        first: NDArray[np.bool_],
-    ) -> PegTransitions:
-        """The steps of a vector environment between two of its ``infos``.
-
-        Args:
-            before: infos before the step (keys ``peg_in_gripper``, ``contact_class``).
-            actions: ``(B,)`` actions taken.
-            after: infos after the step (also ``tactile_triggered``).
-            valid: ``(B,)`` entries that really stepped (not an auto-reset).
-            first: ``(B,)`` entries whose ``before`` is the first state of an episode.
-        """
-        keep = np.flatnonzero(valid)
-
-        def take(info: Mapping[str, NDArray[Any]], key: str) -> NDArray[Any]:
-            return np.asarray(info[key])[keep]
-
-        return cls(
-            grasp=_tensor(take(before, "peg_in_gripper"), _F64),
-            next_grasp=_tensor(take(after, "peg_in_gripper"), _F64),
-            actions=_tensor(np.asarray(actions)[keep], torch.long),
-            classes=_tensor(take(before, "contact_class"), torch.long),
-            next_classes=_tensor(take(after, "contact_class"), torch.long),
-            next_triggered=_tensor(take(after, "tactile_triggered"), torch.bool),
-            first=_tensor(np.asarray(first)[keep], torch.bool),
-        )
-
-    @classmethod
-    def concat(cls, parts: Sequence[PegTransitions]) -> PegTransitions:
-        """All steps of ``parts``, in order."""
-        if not parts:
-            raise ValueError("parts must hold at least one PegTransitions")
-        return cls(**{f.name: torch.cat([getattr(p, f.name) for p in parts]) for f in fields(cls)})
-
-
-def _shape(value: object) -> object:
-    return tuple(value.shape) if isinstance(value, Tensor) else type(value).__name__
-
-
 @dataclass(frozen=True, kw_only=True)
 class PegControl:
     """The known inputs of one filter step.
 
     Attributes:
-        gripper_before: ``(B, 3)`` gripper poses (world) before the step.
-        gripper_after: ``(B, 3)`` gripper poses after it.
+        state_ids: ``(B, N)`` long manipulation-state ids of the particles before the step
+            (:meth:`PegInHoleBeliefModel.particle_state_ids` of the belief and the gripper
+            poses before the step; :class:`~torchcontact.envs.PegInHoleFilter` computes them
+            once per step and keeps them in its belief).
+        gripper_after: ``(B, 3)`` gripper poses (world) after the step.
         actions: ``(B,)`` long actions of the step.
     """
 
-    gripper_before: Tensor
+    state_ids: Tensor
     gripper_after: Tensor
     actions: Tensor
 
@@ -247,7 +145,8 @@ class PegInHoleBeliefModel:
 
         Args:
             belief: the belief before the step, batch ``(B,)``.
-            control: a :class:`PegControl` with batch ``(B,)``.
+            control: a :class:`PegControl` with batch ``(B,)``; its ``state_ids`` (the
+                particles' manipulation states before the step) select the transition rows.
         """
         if not isinstance(control, PegControl):
             raise ValueError(f"control must be a PegControl, got {type(control).__name__}")
@@ -256,8 +155,7 @@ class PegInHoleBeliefModel:
         B = actions.shape[0]
         gripper = control.gripper_after
         H = _vision_matrix(gripper)
-        ids = self.particle_state_ids(belief, control.gripper_before)
-        rows = self.state_transition[self.state_row[ids], actions[:, None]]  # (B, N, K)
+        rows = self.state_transition[self.state_row[control.state_ids], actions[:, None]]
         return ModeDynamics(
             F=torch.eye(3, dtype=_F64).expand(K, 3, 3),
             c=self.displacement[actions],
@@ -273,7 +171,17 @@ class PegInHoleBeliefModel:
     @property
     def vision_cov(self) -> Tensor:
         """``(3, 3)`` covariance of the camera's peg pose, ``diag(σ²)`` of the task."""
-        return torch.diag(_tensor(self.task.config.pose_noise_std, _F64) ** 2)
+        return torch.diag(as_tensor(self.task.config.pose_noise_std, _F64) ** 2)
+
+    def grasp_posterior(self, y: Tensor, gripper: Tensor) -> Gaussian:
+        """The belief over the grasp at the start of episodes: :attr:`grasp_prior` updated with
+        the first camera poses ``y (B, 3)`` of the peg held by grippers ``gripper (B, 3)``;
+        batch ``(B,)``."""
+        prior = self.grasp_prior
+        B = y.shape[0]
+        start = Gaussian(prior.mean.expand(B, 3), prior.cov.expand(B, 3, 3))
+        posterior, _ = kf_update(start, y, H=_vision_matrix(gripper), d=gripper, R=self.vision_cov)
+        return posterior
 
     def particle_state_ids(self, belief: RBPFBelief, gripper: Tensor) -> Tensor:
         """Manipulation-state ids of the particles: their mean grasp placed in the gripper
@@ -343,10 +251,9 @@ class PegInHoleBeliefModel:
         frequency = torch.bincount(transitions.next_classes, minlength=K).to(_F64) + 1e-3
         grasp0 = transitions.grasp[start] if bool(start.any()) else transitions.grasp
         mean = grasp0.mean(0)
-        cov = (
-            torch.cov(grasp0.T) if grasp0.shape[0] > 3 else torch.diag(_tensor(_UNSEEN_NOISE, _F64))
-        )
-        cov = cov + torch.diag(_tensor(_NOISE_FLOOR, _F64))
+        unseen = torch.diag(as_tensor(_UNSEEN_NOISE, _F64))
+        cov = torch.cov(grasp0.T) if grasp0.shape[0] > 3 else unseen
+        cov = cov + torch.diag(as_tensor(_NOISE_FLOOR, _F64))
         return cls(
             task=task,
             displacement=displacement,
@@ -389,9 +296,9 @@ def _fit_motion(data: PegTransitions, min_samples: int) -> tuple[Tensor, Tensor]
     A, K = len(ACTION_NAMES), NUM_CONTACT_CLASSES
     delta = data.next_grasp - data.grasp
     delta[:, 2] = wrap_angle(delta[:, 2])
-    floor = torch.diag(_tensor(_NOISE_FLOOR, _F64))
+    floor = torch.diag(as_tensor(_NOISE_FLOOR, _F64))
     mean = torch.zeros(A, K, 3, dtype=_F64)
-    cov = torch.diag(_tensor(_UNSEEN_NOISE, _F64)).expand(A, K, 3, 3).clone()
+    cov = torch.diag(as_tensor(_UNSEEN_NOISE, _F64)).expand(A, K, 3, 3).clone()
     for k in range(K):
         in_class = data.next_classes == k
         if int(in_class.sum()) >= min_samples:
@@ -429,166 +336,4 @@ def _class_counts(graph: ManipulationGraph, task: PegInHoleTask) -> tuple[Tensor
     return sources, per_state
 
 
-@dataclass(frozen=True, eq=False)
-class PegBelief:
-    """The filter's belief over a batch of ``B`` episodes.
-
-    Attributes:
-        rbpf: the particles (contact class + Gaussian over the grasp), batch ``(B,)``.
-        gripper: ``(B, 3)`` the gripper poses (world) the belief refers to.
-    """
-
-    rbpf: RBPFBelief
-    gripper: Tensor
-
-
-class PegInHoleFilter:
-    """The RBPF of :class:`PegInHoleBeliefModel` over a batch of episodes, on observations.
-
-    Observations are those of ``PegInHole2D(observation="noisy")`` (or the vector version):
-    mappings with ``peg_pose (B, 3)``, ``gripper_pose (B, 3)`` and ``tactile (B, S)``.
-
-    Args:
-        model: the fitted model.
-        num_particles: particles per episode.
-        proposal: ``"bootstrap"`` or ``"all_modes"`` (see :class:`RBPF`).
-        resampling: the resampling scheme.
-        ess_threshold: resample when the ESS falls below this fraction of ``num_particles``.
-    """
-
-    def __init__(
-        self,
-        model: PegInHoleBeliefModel,
-        *,
-        num_particles: int = 64,
-        proposal: Proposal = "bootstrap",
-        resampling: ResamplingMethod = "systematic",
-        ess_threshold: float = 0.5,
-    ) -> None:
-        if not isinstance(model, PegInHoleBeliefModel):
-            raise ValueError(f"model must be a PegInHoleBeliefModel, got {type(model).__name__}")
-        self.model = model
-        self.rbpf = RBPF(
-            model,
-            num_particles,
-            proposal=proposal,
-            resampling=resampling,
-            ess_threshold=ess_threshold,
-        )
-
-    @property
-    def num_particles(self) -> int:
-        """``N``."""
-        return self.rbpf.num_particles
-
-    def init(self, observation: Mapping[str, Any]) -> PegBelief:
-        """The belief at the start of episodes: the grasp prior updated with the first image.
-
-        Args:
-            observation: the first observation of each episode (batch ``B``).
-        """
-        y, gripper, _ = self._unpack(observation)
-        prior = self.model.grasp_prior
-        B = y.shape[0]
-        start = Gaussian(prior.mean.expand(B, 3), prior.cov.expand(B, 3, 3))
-        H, R = _vision_matrix(gripper), self.model.vision_cov
-        posterior, _ = kf_update(start, y, H=H, d=gripper, R=R)
-        return PegBelief(self.rbpf.init(posterior), gripper)
-
-    def step(
-        self,
-        belief: PegBelief,
-        actions: Tensor | NDArray[np.int64],
-        observation: Mapping[str, Any],
-        *,
-        generator: torch.Generator | None = None,
-    ) -> PegBelief:
-        """Advance the belief over one environment step.
-
-        Args:
-            belief: the belief before the step.
-            actions: ``(B,)`` actions taken.
-            observation: the observation after the step.
-            generator: random source of the particle filter.
-        """
-        y, gripper, readings = self._unpack(observation)
-        actions = _tensor(actions, torch.long)
-        control = PegControl(gripper_before=belief.gripper, gripper_after=gripper, actions=actions)
-        rbpf = self.rbpf.step(
-            belief.rbpf,
-            y,
-            action=actions,
-            extra_log_likelihood=self.model.tactile_log_likelihood(readings),
-            control=control,
-            generator=generator,
-        )
-        return PegBelief(rbpf, gripper)
-
-    def restart(
-        self, belief: PegBelief, where: Tensor | NDArray[np.bool_], observation: Mapping[str, Any]
-    ) -> PegBelief:
-        """Restart the entries ``where (B,)`` (new episodes) from ``observation``."""
-        where = _tensor(where, torch.bool)
-        if not bool(where.any()):
-            return belief
-        fresh = self.init(observation)
-
-        def pick(new: Tensor, old: Tensor) -> Tensor:
-            mask = where.reshape(-1, *(1,) * (old.ndim - 1))
-            return torch.where(mask, new, old)
-
-        def merge(new: Any, old: Any) -> Any:
-            if isinstance(old, Tensor):
-                return pick(new, old)
-            if isinstance(old, Gaussian):
-                return Gaussian(pick(new.mean, old.mean), pick(new.cov, old.cov))
-            return old  # the number of modes
-
-        old, new = belief.rbpf, fresh.rbpf
-        merged = {f.name: merge(getattr(new, f.name), getattr(old, f.name)) for f in fields(old)}
-        return PegBelief(replace(old, **merged), pick(fresh.gripper, belief.gripper))
-
-    def particle_poses(self, belief: PegBelief) -> Tensor:
-        """``(B, N, 3)`` each particle's mean peg pose in the world frame."""
-        return compose(belief.gripper.unsqueeze(1), belief.rbpf.gaussians.mean)
-
-    def particle_states(self, belief: PegBelief) -> tuple[Tensor, Tensor]:
-        """Each particle's manipulation-state id ``(B, N)`` and weight ``(B, N)``."""
-        ids = self.model.particle_state_ids(belief.rbpf, belief.gripper)
-        return ids, belief.rbpf.log_weights.exp()
-
-    def pose_mean(self, belief: PegBelief) -> Tensor:
-        """``(B, 3)`` the weighted mean of the peg's world pose."""
-        weights = belief.rbpf.log_weights.exp().unsqueeze(-1)
-        return (weights * self.particle_poses(belief)).sum(1)
-
-    def _unpack(self, observation: Mapping[str, Any]) -> tuple[Tensor, Tensor, Tensor]:
-        try:
-            y = _tensor(observation["peg_pose"], _F64)
-            gripper = _tensor(observation["gripper_pose"], _F64)
-            readings = _tensor(observation["tactile"], torch.bool)
-        except (KeyError, TypeError) as err:
-            raise ValueError(
-                "observation must map peg_pose, gripper_pose and tactile to arrays "
-                "(PegInHole2D(observation='noisy'))"
-            ) from err
-        if y.ndim != 2 or y.shape[1] != 3 or gripper.shape != y.shape:
-            raise ValueError(
-                f"observation: peg_pose and gripper_pose must be (B, 3), got "
-                f"{tuple(y.shape)} and {tuple(gripper.shape)}"
-            )
-        if readings.ndim != 2 or readings.shape[0] != y.shape[0]:
-            raise ValueError(f"observation: tactile must be (B, S), got {tuple(readings.shape)}")
-        if not bool(torch.isfinite(y).all() and torch.isfinite(gripper).all()):
-            raise ValueError("observation: peg_pose and gripper_pose must be finite")
-        return y, gripper, readings
-
-
-__all__ = [
-    "PegBelief",
-    "PegControl",
-    "PegInHoleBeliefModel",
-    "PegInHoleFilter",
-    "PegTransitions",
-    "compose",
-]
+__all__ = ["PegControl", "PegInHoleBeliefModel", "compose"]
