@@ -1,6 +1,6 @@
 """``compiled=True``: the filters' kernels through ``torch.compile`` against the eager kernels
 they compile (the same functions), and the linearization's compile-friendly variant (fixed
-system sizes, explicit inverses) against the reference central differences of the step."""
+system sizes) against the reference derivative of the step."""
 
 from __future__ import annotations
 
@@ -44,7 +44,6 @@ def _linearize(
         x,
         q_kin,
         v_kin,
-        fd_step=model.fd_step,
         consistency_gap=model.consistency_gap,
         consistency_tolerance=model.consistency_tolerance,
         for_compile=for_compile,
@@ -62,20 +61,24 @@ def _assert_beliefs_close(a: RBPFBelief, b: RBPFBelief, *, rtol: float, atol: fl
         torch.testing.assert_close(x, y, rtol=rtol, atol=atol)
 
 
-def test_fixed_shapes_and_inverses_match_the_reference_linearization() -> None:
+def test_fixed_shapes_match_the_reference_linearization() -> None:
     for model, x, control in _linearization_cases():
         dynamic = _linearize(model, x, control, for_compile=False)
         fixed = _linearize(model, x, control, for_compile=True)
         assert torch.equal(fixed[2], dynamic[2])  # the consistency verdicts
         for b in range(len(x)):
             u = KinematicControl(q=control.q[b], v=control.v[b])
-            F_ref, _, solvable = _reference_linearization(model, x[b], u)
-            # The tolerances of the eager linearization's test (measured here: 6e-9 of the
-            # largest entry where the mode's system is solvable, 9e-4 where solve_mode's
-            # regularised answer amplifies round-off; eager 6e-9 and 5e-4).
-            scale = F_ref.abs().amax(dim=(-2, -1), keepdim=True).clamp_min(1.0)
-            tolerance = torch.where(solvable, 1e-5, 3e-3).to(F64)[:, None, None]
-            assert bool(((fixed[0][b] - F_ref).abs() <= tolerance * scale).all())
+            ref = _reference_linearization(model, x[b], u)
+            # The tolerances of the eager linearization's test where the mode's system is
+            # solvable (and smooth at the point); elsewhere solve_mode's regularised answer
+            # amplifies round-off: only finite.
+            scale = ref.jacobian.abs().amax(dim=(-2, -1), keepdim=True).clamp_min(1.0)
+            smooth = (ref.solvable & ~ref.kink)[:, None, None]
+            error = (fixed[0][b] - ref.jacobian).abs() / scale
+            assert bool((error <= 1e-10).where(smooth, True).all())
+            error = (fixed[0][b] - dynamic[0][b]).abs() / scale
+            assert bool((error[ref.solvable] <= 1e-10).all())
+            assert bool(torch.isfinite(fixed[0][b]).all())
             # c makes the linearization exact at the point, as the eager one.
             torch.testing.assert_close(
                 (fixed[0][b] @ x[b, :, None]).squeeze(-1) + fixed[1][b],
@@ -123,8 +126,20 @@ def test_compiled_contact_model_equals_eager(monkeypatch: pytest.MonkeyPatch) ->
     F_c, c_c, consistent_c = compiled._linearize(x, control, F64)
     assert torch.equal(consistent_c, consistent)
     scale = F.abs().amax(dim=(-2, -1), keepdim=True).clamp_min(1.0)
-    assert bool(((F_c - F).abs() <= 1e-9 * scale).all())
-    torch.testing.assert_close(c_c, c, rtol=0, atol=1e-9 * float(scale.max()))
+    # Relative to each mode's largest entry: 1e-12 where the mode's equalities are met
+    # (measured: 1e-18); elsewhere the derivative of solve_mode's regularised answer amplifies
+    # the rounding (measured: 5e-7).
+    solvable = torch.stack(
+        [
+            _reference_linearization(
+                model, x[b], KinematicControl(q=control.q[b], v=control.v[b])
+            ).solvable
+            for b in range(len(x))
+        ]
+    )
+    tolerance = torch.where(solvable, 1e-12, 1e-5)[..., None, None] * scale
+    assert bool(((F_c - F).abs() <= tolerance).all())
+    torch.testing.assert_close(c_c, c, rtol=0, atol=1e-5 * float(scale.max()))
 
     # A few filter steps on a pushed box, both kernels compiled, against the same kernels run
     # eagerly (the model's compile-friendly linearization included: the eager model's own,

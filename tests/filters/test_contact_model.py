@@ -1,5 +1,5 @@
 """The planar contact model of the RBPF: its step against the simulator, its linearization
-against closed-form sliding, automatic differentiation and central differences of the step
+against closed-form sliding, automatic differentiation and extrapolated differences of the step
 (with the consistency check against ``is_consistent``), the tactile likelihood against a hand
 count, and the filter tracking a pushed box better than its camera."""
 
@@ -24,6 +24,7 @@ from torchcontact.filters import (
     collect_modes,
     empirical_transition,
 )
+from torchcontact.filters._planar_linearization import slot_rows
 from torchcontact.geometry import HalfPlane, Polygon
 from torchcontact.sim import (
     Body,
@@ -92,12 +93,11 @@ def test_linearized_sliding_box_matches_the_closed_form() -> None:
 def test_linearization_matches_automatic_differentiation() -> None:
     """Where a mode's equalities are solvable at the linearization point, its step is smooth
     there and the linearization is its derivative: reverse-mode automatic differentiation of
-    ``model.step`` is the reference (agreement to 1e-5 on entries up to ``1/h`` and beyond; the
-    central difference's truncation error is ~1e-7 here). A mode whose equalities contradict
-    each other has no derivative worth the name (its step is a regularised least-squares
-    answer that amplifies round-off, and its digits depend on the CPU's BLAS kernels): it is
-    tested for what it is, reported unsolvable by ``solve_mode`` and weighted down by the
-    model."""
+    ``model.step`` is the reference (agreement to 1e-10 of the largest entry, ``1/h``). A mode
+    whose equalities contradict each other has no derivative worth the name (its step is a
+    regularised least-squares answer that amplifies round-off, and its digits depend on the
+    CPU's BLAS kernels): it is tested for what it is, reported unsolvable by ``solve_mode``
+    and weighted down by the model."""
     scene = _scene()
     # Mode 0: both bottom corners slide while the finger sticks (contradictory: the finger
     # moves at 0.4 m/s, the box would have to follow it while sliding at another speed);
@@ -129,7 +129,7 @@ def test_linearization_matches_automatic_differentiation() -> None:
     for k in torch.nonzero(solvable).flatten().tolist():
         mode = torch.tensor(k)
         jac = torch.func.jacrev(lambda z, m=mode: model.step(z, mode=m, control=control))(x)
-        torch.testing.assert_close(F[k], jac, atol=1e-5, rtol=0)
+        torch.testing.assert_close(F[k], jac, atol=1e-10 * float(jac.abs().max()), rtol=0)
         torch.testing.assert_close(F[k] @ x + c[k], model.step(x, mode=mode, control=control))
     # The unsolvable modes contradict themselves at x: the consistency gate penalizes them.
     prior = Gaussian(x, 1e-8 * torch.eye(6, dtype=F64))
@@ -138,33 +138,49 @@ def test_linearization_matches_automatic_differentiation() -> None:
     assert bool((weight[~solvable] == -model.inconsistency_penalty).all())
 
 
+@dataclass(frozen=True)
+class _Reference:
+    """The documented linearization, slowly, from ``model.step`` (``contact_problem`` and
+    ``solve_mode`` on the whole scene), per mode ``(K, …)``.
+
+    Attributes:
+        jacobian: forward-mode automatic differentiation of the step at ``x``.
+        richardson: Richardson-extrapolated central differences, ``ε = 1e-5`` and ``5e-6``.
+        one_sided: ``(2, K, 6, 6)`` forward and backward differences, ``ε = 1e-7``.
+        kink: the two one-sided differences disagree (a slot's closest edge switches at
+            ``x``).
+        consistent: ``is_consistent`` on the problem at ``x`` with the mode's gaps closed up
+            to the dead zone.
+        solvable: ``solve_mode`` met the mode's equalities at ``x``.
+    """
+
+    jacobian: torch.Tensor
+    richardson: torch.Tensor
+    one_sided: torch.Tensor
+    kink: torch.Tensor
+    consistent: torch.Tensor
+    solvable: torch.Tensor
+
+
 def _reference_linearization(
     model: PlanarContactModel, x: torch.Tensor, control: KinematicControl
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """The documented linearization, slowly: for every mode and coordinate ``j``, the step
-    (``model.step``: ``contact_problem`` and ``solve_mode`` on the whole scene) at ``x`` and
-    ``x ± ε e_j``, central differences or, at a kink, the smaller one-sided one; the
-    consistency from ``is_consistent`` on the problem at ``x`` with the mode's gaps closed up
-    to the dead zone.
-
-    Returns ``F (K, 6, 6)``, ``consistent (K,)`` and ``solvable (K,)`` (``solve_mode`` met
-    the mode's equalities at ``x``)."""
-    eps, gap = model.fd_step, model.consistency_gap
-    Fs, consistent, solvable = [], [], []
-    steps = eps * torch.eye(6, dtype=F64)
+) -> _Reference:
+    gap = model.consistency_gap
+    jacobians, richardsons, one_sided, consistent, solvable = [], [], [], [], []
+    eye = torch.eye(6, dtype=F64)
     for k in range(model.num_modes):
-        # The step at x, x + ε e_j and x − ε e_j, each point a problem of its own.
-        points = torch.cat([x[None], x + steps, x - steps])
-        f = model.step(points, mode=torch.tensor(k).expand(13), control=control)
-        columns = []
-        for j in range(6):
-            forward, backward = (f[1 + j] - f[0]) / eps, (f[0] - f[7 + j]) / eps
-            big, small = sorted([float(forward.norm()), float(backward.norm())], reverse=True)
-            if big > 10.0 * (small + 1.0):  # a kink: the smaller one-sided difference
-                columns.append(forward if forward.norm() <= backward.norm() else backward)
-            else:
-                columns.append(0.5 * (forward + backward))
-        Fs.append(torch.stack(columns, dim=-1))
+        mode = torch.tensor(k)
+        jacobians.append(
+            torch.func.jacfwd(lambda z, m=mode: model.step(z, mode=m, control=control))(x)
+        )
+        # x ± ε e_j for ε = 1e-5, 5e-6 (central) and 1e-7 (one-sided): one batch of problems.
+        steps = torch.tensor([1e-5, 5e-6, 1e-7], dtype=F64)[:, None, None] * eye
+        points = torch.cat([x[None], (x + steps).flatten(0, 1), (x - steps).flatten(0, 1)])
+        f = model.step(points, mode=mode.expand(len(points)), control=control)
+        ahead, behind = f[1:19].unflatten(0, (3, 6)), f[19:].unflatten(0, (3, 6))
+        central = ((ahead - behind) / (2 * steps.diagonal(dim1=-2, dim2=-1)[..., None])).mT
+        richardsons.append((4 * central[1] - central[0]) / 3)
+        one_sided.append(torch.stack([(ahead[2] - f[0]).mT, (f[0] - behind[2]).mT]) / 1e-7)
         modes = model.modes[k][None]
         state = SceneState(
             q=x[None, None, :3], v=x[None, None, 3:], q_kinematic=control.q[None], mode=modes
@@ -175,7 +191,17 @@ def _reference_linearization(
         problem = replace(problem, phi=torch.where(modes >= 1, closed, problem.phi))
         solution = solve_mode(problem, modes)
         consistent.append(is_consistent(problem, solution, atol=model.consistency_tolerance)[0])
-    return torch.stack(Fs), torch.stack(consistent), torch.stack(solvable)
+    sided = torch.stack(one_sided, dim=1)  # (2, K, 6, 6)
+    scale = sided.abs().amax(dim=(0, -2, -1)).clamp_min(1.0)
+    kink = (sided[0] - sided[1]).abs().amax(dim=(-2, -1)) > 1e-2 * scale
+    return _Reference(
+        jacobian=torch.stack(jacobians),
+        richardson=torch.stack(richardsons),
+        one_sided=sided,
+        kink=kink,
+        consistent=torch.stack(consistent),
+        solvable=torch.stack(solvable),
+    )
 
 
 def _gripper_scene() -> Scene:
@@ -203,7 +229,7 @@ def _linearization_cases() -> list[tuple[PlanarContactModel, torch.Tensor, Kinem
     """Models and ``(B, 6)`` points with ``(B, Nk, 3)`` controls: a box pushed by a finger
     at points of a rollout moved a few millimetres off (as a filter's mean is), and with the
     finger's corner on the diagonal off the box's corner (the corner's closest edge switches
-    within the stencil: a kink); the gripper scene."""
+    at the point: a kink); the gripper scene."""
     _, train, controls = _pushed_box(8, 60, seed=0)
     table, _, _ = collect_modes(train.mode)
     scene = pushed_box_scene(friction=MU, h=H, mass=4.0)  # heavier than in the rollouts
@@ -251,40 +277,80 @@ def _linearization_cases() -> list[tuple[PlanarContactModel, torch.Tensor, Kinem
     ]
 
 
-def test_linearization_matches_central_differences_of_the_step() -> None:
-    seen_consistent = seen_unsolvable = seen_modes = 0
+def test_linearization_is_the_exact_derivative_of_the_step() -> None:
+    seen_consistent = seen_unsolvable = seen_kinks = seen_modes = 0
     for model, x, control in _linearization_cases():
         F, c = model.linearize(x, control=control)
+        assert bool(torch.isfinite(F).all() and torch.isfinite(c).all())
         prior = Gaussian(x, torch.eye(6, dtype=F64).expand(len(x), 6, 6) * 1e-4)
         dynamics = model.mode_dynamics(RBPF(model, 16).init(prior), control)
         assert dynamics.mode_log_weight is not None
         seen_modes += model.num_modes * len(x)
         for b in range(len(x)):
             u = KinematicControl(q=control.q[b], v=control.v[b])
-            F_ref, consistent, solvable = _reference_linearization(model, x[b], u)
-            # Relative to each mode's largest entry (about 1/h), 1e-5 (measured: 2e-6). Where
-            # solve_mode cannot meet a mode's equalities at the point, its regularised answer
-            # is the step, and it amplifies round-off: the reference itself moves by up to
-            # 1.1e-3 when x moves by 1e-15 (measured), so 3e-3 there.
-            scale = F_ref.abs().amax(dim=(-2, -1), keepdim=True).clamp_min(1.0)
-            tolerance = torch.where(solvable, 1e-5, 3e-3).to(F64)[:, None, None]
-            alone, _ = model.linearize(x[b], control=u)  # the batch does not matter
-            for linearized in (F[b], dynamics.F[b], alone):
-                assert bool(((linearized - F_ref).abs() <= tolerance * scale).all())
-            # c makes the linearization exact at the point: F x + c is the step there (measured
-            # 2e-9 and, for the unmet modes, 2e-6 at most).
+            ref = _reference_linearization(model, x[b], u)
+            # Relative to each mode's largest entry (about 1/h): where solve_mode meets the
+            # mode's equalities and no closest edge switches at the point, the automatic
+            # derivative to 1e-10 (measured: 2e-13) and the extrapolated differences to 1e-6.
+            scale = ref.jacobian.abs().amax(dim=(-2, -1)).clamp_min(1.0)
+            # The batch does not matter where the mode's equalities are met (elsewhere the
+            # derivative of solve_mode's regularised answer amplifies round-off: only finite).
+            alone, _ = model.linearize(x[b], control=u)
+            tolerance = (1e-10 * scale)[:, None, None]
+            for linearized in (dynamics.F[b], alone):
+                close = (linearized - F[b]).abs() <= tolerance
+                assert bool(close[ref.solvable].all())
+                assert bool(torch.isfinite(linearized).all())
+            error = (F[b] - ref.jacobian).abs().amax(dim=(-2, -1)) / scale
+            smooth = ref.solvable & ~ref.kink
+            assert bool((error[smooth] <= 1e-10).all()), error
+            error = (F[b] - ref.richardson).abs().amax(dim=(-2, -1)) / scale
+            assert bool((error[smooth] <= 1e-6).all()), error
+            # At a kink, each column is one of the one-sided derivatives (that of the closest
+            # edge chosen at the point).
+            columns = (F[b] - ref.one_sided).abs().amax(dim=-2) / scale[:, None]  # (2, K, 6)
+            one_side = columns.amin(dim=0).amax(dim=-1)
+            assert bool((one_side[ref.kink & ref.solvable] <= 1e-4).all()), one_side
+            # c makes the linearization exact at the point: F x + c is the step there.
             for k in range(model.num_modes):
                 step = model.step(x[b], mode=torch.tensor(k), control=u)
-                atol = 1e-8 if solvable[k] else 1e-5 * float(scale[k])
+                atol = 1e-8 if ref.solvable[k] else 1e-5 * float(scale[k])
                 torch.testing.assert_close(F[b, k] @ x[b] + c[b, k], step, atol=atol, rtol=0)
-            penalty = torch.where(consistent, 0.0, -model.inconsistency_penalty).to(F64)
+            penalty = torch.where(ref.consistent, 0.0, -model.inconsistency_penalty).to(F64)
             torch.testing.assert_close(dynamics.mode_log_weight[b], penalty)
-            seen_consistent += int(consistent.sum())
-            seen_unsolvable += int((~solvable).sum())
-    # The cases hold consistent modes, inconsistent ones, and modes whose equalities
-    # contradict each other at the point (solve_mode's regularised answer is their step).
+            seen_consistent += int(ref.consistent.sum())
+            seen_unsolvable += int((~ref.solvable).sum())
+            seen_kinks += int((ref.kink & ref.solvable).sum())
+    # The cases hold consistent modes, inconsistent ones, modes whose equalities contradict
+    # each other at the point (solve_mode's regularised answer is their step) and a kink.
     assert 0 < seen_consistent < seen_modes
     assert seen_unsolvable > 0
+    assert seen_kinks > 0
+
+
+def test_slot_row_tangents_match_automatic_differentiation() -> None:
+    """``slot_rows``' derivatives along the tracked pose against ``jacfwd`` of its rows, away
+    from ties of the closest edge (where ``amax`` splits the derivative)."""
+    seen = ties = 0
+    for model, x, control in _linearization_cases():
+        layout = model._layout
+        q_kin, v_kin = model._control(control, x.shape[:-1], F64)
+        rows, candidate = slot_rows(layout, x[:, :3], q_kin, v_kin, tangents=True)
+        plain, plain_candidate = slot_rows(layout, x[:, :3], q_kin, v_kin)
+        torch.testing.assert_close(rows[:, 0], plain, rtol=0, atol=1e-15)
+        assert torch.equal(candidate, plain_candidate)
+        for b in range(len(x)):
+            qk, vk = q_kin[b], v_kin[b]
+            jac = torch.func.jacfwd(lambda q, at=layout, qk=qk, vk=vk: slot_rows(at, q, qk, vk)[0])(
+                x[b, :3]
+            )  # (S, 9, 3)
+            error = (rows[b, 1:].permute(1, 2, 0) - jac).abs().amax(dim=(-2, -1))  # (S,)
+            agree = error <= 1e-12
+            seen += int(agree.sum())
+            ties += int((~agree).sum())
+    # One tie: the finger's corner on the box corner's diagonal (the kink case).
+    assert ties <= 1
+    assert seen > 0
 
 
 def _pushed_box(batch: int, steps: int, seed: int) -> tuple[Scene, Rollout, torch.Tensor]:

@@ -87,17 +87,18 @@ class PlanarContactModel:
     plus the process noise :math:`Q_k`. Vision measures the pose: :math:`y = (x, y, \theta)
     + N(0, R)` (the angle must be continuous, not wrapped, like the simulator's).
 
-    The Jacobian is a central difference in float64 (``2·6`` extra evaluations of the step; the
-    default step of 3e-5 balances the curvature of the geometry against the solver's round-off):
-    on a box pushed by a finger it matches reverse-mode automatic differentiation to 1e-5
-    (entries up to ``1/h = 100``). All points and modes are evaluated in one batch, with each
-    mode's constraint system reduced to the slots it activates (about 215 small tensor
-    operations, whatever the batch: 1.5 ms for 5 modes on one CPU thread, 20 ms for a batch of
-    50 means, where the batched LU solves of 3,500 small systems dominate). At a kink of the
-    geometry (a slot's nearest feature switching inside the stencil) the two one-sided
-    differences disagree; there the smaller one is used. A mode whose active slots are not
-    candidates at :math:`\bar x` (out of the scene's margin) acts as if those slots were
-    separated (the candidates are those at :math:`\bar x` for the whole stencil). Where a mode's
+    The Jacobian is exact, in float64: the derivative of the mode-fixed step at :math:`\bar x`
+    with the discrete choices of the geometry held (each slot's closest edge, the candidate
+    slots): the slots' gaps, rows and known velocities are differentiated along the pose in
+    closed form, and the derivative of the impulses follows from that of the mode's
+    constraint system, solved with the step's own (iterated Tikhonov) solve; on a box pushed by
+    a finger it matches forward-mode automatic differentiation of the step to 1e-10 of the
+    largest entry. All modes are linearized in one batch, with each mode's constraint system
+    reduced to the slots it activates (a few hundred small tensor operations, whatever the
+    batch). Where a slot's closest edge switches at :math:`\bar x` itself (a kink of the
+    geometry) the derivative is the one-sided one of the edge chosen there. A mode whose
+    active slots are not candidates at :math:`\bar x` (out of the scene's margin) acts as if
+    those slots were separated. Where a mode's
     equalities contradict each other at :math:`\bar x` (a finger sticking to a box that slides
     on the ground), its step is ``solve_mode``'s regularised answer, which amplifies round-off:
     its linearization is reproducible to about 1e-3 only (such modes are usually inconsistent,
@@ -124,7 +125,6 @@ class PlanarContactModel:
             (e.g. from a :class:`~torchcontact.states.ManipulationGraph` or
             :func:`empirical_transition`).
         initial: ``(K,)`` distribution of the first mode.
-        fd_step: step of the central differences, in metres, radians and metres per second.
         inconsistency_penalty: log-weight penalty (nats, ``>= 0``; ``inf`` rules such modes
             out) of modes inconsistent at the linearization point; ``0`` disables the gate.
         consistency_tolerance: relative tolerance of the consistency check.
@@ -133,8 +133,7 @@ class PlanarContactModel:
             ``torchcontact.filters._compiled``; the first call compiles, tens of seconds, then
             a call takes a third to a quarter of the eager time), with every mode's system laid
             out over the most slots any mode activates, so that its shapes do not depend on the
-            linearization point, and solved with explicit inverses (the same results to
-            rounding).
+            linearization point (the same results to rounding).
 
     Construction validates every field and raises ``ValueError`` naming the field at fault.
     """
@@ -145,7 +144,6 @@ class PlanarContactModel:
     R: Tensor
     transition: Tensor
     initial: Tensor
-    fd_step: float = 3e-5
     inconsistency_penalty: float = 5.0
     consistency_tolerance: float = 0.05
     consistency_gap: float = 0.003
@@ -176,8 +174,6 @@ class PlanarContactModel:
             )
         if bool(((modes < 0) | (modes >= PLANAR_MODES)).any()):
             raise ValueError(f"modes: values must lie in [0, {PLANAR_MODES})")
-        if not isinstance(self.fd_step, float) or not 0.0 < self.fd_step < 1e-2:
-            raise ValueError(f"fd_step: expected a float in (0, 0.01), got {self.fd_step!r}")
         penalty = self.inconsistency_penalty
         if penalty != math.inf:  # inf rules inconsistent modes out
             check_real("inconsistency_penalty", penalty, low=0.0)
@@ -347,7 +343,6 @@ class PlanarContactModel:
                 flat,
                 q_kin.reshape(kinematic),
                 v_kin.reshape(kinematic),
-                fd_step=self.fd_step,
                 consistency_gap=self.consistency_gap,
                 consistency_tolerance=self.consistency_tolerance,
                 for_compile=self.compiled,

@@ -1,39 +1,47 @@
 """The per-mode linearization of :class:`~torchcontact.filters.PlanarContactModel`, fast.
 
-It computes what the model's definition asks for: central differences of the mode-fixed step
+It computes what the model's definition asks for: the exact Jacobian of the mode-fixed step
 (:func:`~torchcontact.sim.contact_problem`, :func:`~torchcontact.contact.solve_mode`,
-semi-implicit Euler), and :func:`~torchcontact.contact.is_consistent` at the centre with the
-mode's gaps closed. The tensors are small (a few modes, a dozen slots), so the time goes into
-the number of tensor operations (a few microseconds each), not their size; this module uses
-about 215 per call (and 115 views), whatever the batch, 17 of them LAPACK calls:
+semi-implicit Euler) at the linearization point, and
+:func:`~torchcontact.contact.is_consistent` there with the mode's gaps closed. The tensors
+are small (a few modes, a dozen slots), so the time goes into the number of tensor
+operations (a few microseconds each), not their size; this module uses a fixed number of
+them per call, whatever the batch:
 
-* the slot rows of every slot group at once, at the seven poses of the stencil (the centre
-  and ``±ε`` along ``x``, ``y``, ``θ``; the twist points share the centre's geometry), from
-  body-frame tables built once per scene: each shape's vertices, edge normals and edge
-  directions (its contact tangents) rotate together, and a half-plane is a polygon of one
-  unbounded edge;
+* the slot rows of every slot group at once (:func:`slot_rows`), from body-frame tables built
+  once per scene: each shape's vertices, edge normals and edge directions (its contact
+  tangents) rotate together, and a half-plane is a polygon of one unbounded edge; with them
+  their derivatives along the tracked body's pose (``x``, ``y``, ``θ``), in closed form by
+  the same operations (a rotated row's derivative along ``θ`` is the row turned by +90°, the
+  gap ``φ`` takes that of its closest edge), stacked behind the rows;
 * each mode's system holds only the slots that the mode activates and that are candidates at
-  the centre (sorted from a table of each mode's slots built once per model):
-  ``solve_mode``'s system is the identity on every other row (so the candidates are the
-  centre's at every point of the stencil, where ``contact_problem`` at a shifted pose could
-  drop or add a slot crossing the margin within ``±ε``: a spurious jump);
-* ``solve_mode``'s two iterated Tikhonov passes; the second (the friction split among
-  redundant sticking contacts) runs on every mode and is kept for those with sticking
-  slots, as ``solve_mode`` on one mode: it leaves the step unchanged where the mode's system
-  is solvable, and decides the regularised answer where it is not;
+  the point (sorted from a table of each mode's slots built once per model);
+  ``solve_mode``'s system is the identity on every other row. The mode fixes the constraint
+  rows ``C`` (active normals, sticking tangents), the impulse rows ``G`` (``C`` with
+  ``μ Jt_d`` added to the normals of sliding slots), ``U = M⁻¹ Gᵀ``, ``A = C U`` and
+  ``b = −(C v_free + target)``, ``target = (bn + φ/h, bt)``; all linear in the slot rows, so
+  their derivatives along the pose follow from the rows' by the same operations;
+* ``solve_mode``'s two iterated Tikhonov passes for the impulses ``x`` (``A x = b``), at the
+  point and at the point with the mode's gaps closed (the consistency check's); the second
+  pass (the friction split among redundant sticking contacts) runs on every mode and is kept
+  for those with sticking slots, as ``solve_mode`` on one mode: it leaves the step unchanged
+  where the mode's system is solvable, and decides the regularised answer where it is not.
+  Each pass inverts its matrices once and iterates with products;
+* the derivative along each of the six coordinates at once: ``dx = P(db − dA x)`` with
+  ``dA = dC U + C dU`` and ``P`` the iterated Tikhonov solve of the pass kept (its inverse
+  and weights held), ``dv⁺ = dU x + U dx + dv_free`` (``dv_free`` the unit twists along
+  ``v``, zero along the pose), so that ``F = [[I + h ∂v⁺/∂q, h ∂v⁺/∂v], [∂v⁺/∂q, ∂v⁺/∂v]]``;
 * ``is_consistent``'s tests on every slot, knowing which carry impulses;
 * one host synchronisation (the size of the systems) and no validation: the model checks its
   inputs at its public methods.
 
 With ``for_compile`` (the model's ``compiled=True``) the systems are sized by the mode table
-instead (no host synchronisation: shapes that do not depend on the data) and each Tikhonov
-pass inverts its matrices once and iterates with products, which :func:`torch.compile` fuses,
-instead of one batched LU solve per iteration (each a LAPACK call with a per-matrix cost).
+instead: no host synchronisation, shapes that do not depend on the data, as
+:func:`torch.compile` wants them.
 """
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass
 
 import torch
@@ -50,8 +58,6 @@ from torchcontact.sim import Scene
 
 #: Offset of padding edges (signed distance about ``-_FAR``: never the closest edge).
 _FAR = 1e30
-#: One-sided differences this far apart straddle a discontinuity of the geometry.
-_KINK_RATIO = 10.0
 #: State size: pose and twist.
 _STATE = 6
 #: Tikhonov shift of ``solve_mode`` relative to the largest diagonal entry of the system.
@@ -101,12 +107,21 @@ class SlotLayout:
         turn: ``(2,)`` ``(−1, 1)``: ``u.flip(-1) * turn`` turns ``u`` by +90°.
         h: time step, seconds.
         margin: candidate margin, metres.
-        stencil: ``(14, 6)`` the finite-difference points in units of ``ε``: zero, the unit
-            vectors, their negatives and zero again (the consistency check's point).
-        stencil_pose: ``(14, 1)`` index of each point's pose among those of ``stencil_poses``.
-        stencil_poses: ``(7, 3)`` the distinct pose offsets in units of ``ε``.
-        closing: ``(14, 1, 1)`` 1 at the consistency check's point (whose gaps are closed),
-            else 0.
+        pose_tangent: ``(2, 3V + 1, 2)`` the derivatives of a shape's rows along ``x`` and
+            ``y`` of its pose (``translated`` times the unit vectors).
+        tracked: ``(2G, 1, 1)`` 1 where ``group_shapes`` is the tracked body, else 0.
+        pose_directions: ``(3, 3)`` the identity: the derivatives of the pose along itself.
+        tangent_mask: ``(4, 1, 1, 1)`` ``(0, 1, 1, 1)``: the derivatives among the stacked rows
+            of :func:`slot_rows` (value, then ``x``, ``y``, ``θ``).
+        body_mask: ``(4, 1, 1, 6)`` 1 on the value's row and on the angular velocity of the
+            derivatives' rows: what of a kinematic body's pose and twist the stacked point
+            velocities use.
+        stacked_offset: ``(4, G, 1, 2V)`` ``edge_offset`` on the value's row, 0 on the
+            derivatives' rows.
+        embed: ``(3, 6)`` ``[I₃ 0]``: the pose part of a step's Jacobian.
+        twist_tangents: ``(3, 3, 1)`` the unit twists, the derivatives of ``v`` along ``v``.
+        closing: ``(2, 1, 1)`` 0 at the linearization point, 1 at the consistency check's
+            point (the same with the mode's gaps closed).
     """
 
     frame: Tensor
@@ -127,9 +142,14 @@ class SlotLayout:
     turn: Tensor
     h: float
     margin: float
-    stencil: Tensor
-    stencil_pose: Tensor
-    stencil_poses: Tensor
+    pose_tangent: Tensor
+    tracked: Tensor
+    pose_directions: Tensor
+    tangent_mask: Tensor
+    body_mask: Tensor
+    stacked_offset: Tensor
+    embed: Tensor
+    twist_tangents: Tensor
     closing: Tensor
 
 
@@ -222,7 +242,7 @@ def slot_layout(scene: Scene, device: torch.device) -> SlotLayout:
     for g, group in enumerate(scene.slot_groups):
         receiver.append(shape_index[group.receiver])
         other.append(shape_index[group.other])
-        friction = torch.as_tensor(scene.pair_mu(group.receiver, group.other)).detach()
+        friction = torch.as_tensor(scene.pair_mu(group.receiver, group.other), dtype=f64).detach()
         if friction.numel() != 1:
             raise ValueError(
                 "scene: the linearization needs scalar friction coefficients, got a tensor of "
@@ -248,9 +268,11 @@ def slot_layout(scene: Scene, device: torch.device) -> SlotLayout:
         pose = scene.bodies[body_index].pose
         assert pose is not None
         static_poses[s] = pose.detach()
-    eye = torch.eye(_STATE, dtype=f64)
-    closing = torch.zeros(2 * _STATE + 2, 1, 1, dtype=f64)
-    closing[-1] = 1.0
+    eye = torch.eye(3, dtype=f64)
+    tangent_mask = torch.tensor([0.0, 1.0, 1.0, 1.0], dtype=f64).view(4, 1, 1, 1)
+    body_mask = torch.zeros(4, 1, 1, 6, dtype=f64)
+    body_mask[0], body_mask[1:, ..., 5] = 1.0, 1.0
+    edge_offsets = edge_offset[groups].unsqueeze(-2)
     fields = {
         "frame": frame,
         "frame_turned": frame.flip(-1) * turn,
@@ -258,7 +280,7 @@ def slot_layout(scene: Scene, device: torch.device) -> SlotLayout:
         "static_poses": static_poses,
         "group_shapes": torch.tensor(receiver + other, dtype=torch.long),
         "group_kinematic": torch.tensor(group_kinematic, dtype=torch.long),
-        "edge_offset": edge_offset[groups].unsqueeze(-2),
+        "edge_offset": edge_offsets,
         "facing_offset": facing_offset[groups].unsqueeze(-2),
         "edge_reach": edge_length[groups].unsqueeze(-2) + scene.margin,
         "tie_tolerance": TIE_TOLERANCE  # of a half-plane: 0, it has a single edge
@@ -268,10 +290,15 @@ def slot_layout(scene: Scene, device: torch.device) -> SlotLayout:
         "inverse_mass": torch.tensor([1.0 / mass, 1.0 / mass, 1.0 / inertia], dtype=f64),
         "gravity_step": scene.h * gravity,
         "turn": turn,
-        "stencil": torch.cat([eye.new_zeros(1, _STATE), eye, -eye, eye.new_zeros(1, _STATE)]),
-        "stencil_pose": torch.tensor([0, 1, 2, 3, 0, 0, 0, 4, 5, 6, 0, 0, 0, 0]).unsqueeze(-1),
-        "stencil_poses": torch.cat([eye.new_zeros(1, 3), eye[:3, :3], -eye[:3, :3]]),
-        "closing": closing,
+        "pose_tangent": translated * eye[:2, None, :2],
+        "tracked": (torch.tensor(receiver + other) == 0).to(f64)[:, None, None],
+        "pose_directions": eye,
+        "tangent_mask": tangent_mask,
+        "body_mask": body_mask,
+        "stacked_offset": edge_offsets * (1.0 - tangent_mask),
+        "embed": torch.eye(3, _STATE, dtype=f64),
+        "twist_tangents": eye.unsqueeze(-1),
+        "closing": torch.tensor([0.0, 1.0], dtype=f64).view(2, 1, 1),
     }
     source = None
     if slot_source != list(range(len(scene.slot_groups) * V)):
@@ -307,25 +334,41 @@ def mode_table(layout: SlotLayout, modes: Tensor) -> ModeTable:
 
 
 def slot_rows(
-    layout: SlotLayout, q: Tensor, q_kinematic: Tensor, v_kinematic: Tensor
+    layout: SlotLayout,
+    q: Tensor,
+    q_kinematic: Tensor,
+    v_kinematic: Tensor,
+    *,
+    tangents: bool = False,
 ) -> tuple[Tensor, Tensor]:
-    """Every slot's rows of the contact problem (the tracked body's columns of them).
+    """Every slot's rows of the contact problem (the tracked body's columns of them), and with
+    ``tangents`` their derivatives along the tracked body's pose.
 
     The slot geometry is that of :func:`~torchcontact.sim.contact_problem`: for a vertex
     against a polygon the closest edge is the one of largest signed distance, ties going to
     the edge that faces the vertex from the polygon's vertex mean, as in
     :func:`~torchcontact.geometry.polygon_slots`.
 
+    The derivatives are exact, propagated by hand through the same operations (plain tensor
+    operations, as :func:`torch.compile` wants them): a rotated row's derivative along ``θ``
+    is the row turned by +90°, the signed distance ``φ`` (the largest over the edges) takes
+    that of its arg-max edge (at a tie, the closest edge, whose normal the slot takes: a
+    one-sided derivative), and the discrete decisions (closest edge, candidates) are held
+    fixed. They are stacked behind the rows, so that the linear operations (gathers, slices,
+    signs) run once on both.
+
     Args:
         layout: the scene's layout.
         q: ``(*P, 3)`` poses of the tracked body.
         q_kinematic: ``(*P, Nk, 3)`` poses of the kinematic bodies.
         v_kinematic: ``(*P, Nk, 3)`` their twists.
+        tangents: also return the derivatives along ``x``, ``y`` and ``θ`` of the tracked body.
 
     Returns:
         ``(*P, S, 9)``: ``φ``, the normal row ``Jn`` (3), the row ``Jt`` of friction direction
         ``+t`` (3; direction ``−t`` is its negative), and the known velocities ``bn`` and
-        ``bt`` (along ``+t``); and the ``(*P, S)`` bool candidates.
+        ``bt`` (along ``+t``); with ``tangents`` ``(*P, 4, S, 9)``: those, then their
+        derivatives along ``x``, ``y`` and ``θ``; and the ``(*P, S)`` bool candidates.
     """
     G, V = layout.facing_offset.shape[0], layout.facing_offset.shape[-1]
     static = layout.static_poses.expand(*q.shape[:-1], -1, 3)
@@ -334,33 +377,80 @@ def slot_rows(
     rotated = layout.frame * torch.cos(angle) + layout.frame_turned * torch.sin(angle)
     world = torch.addcmul(rotated, layout.translated, poses[..., None, :2])  # (*P, Ns, 3V+1, 2)
     shapes = world.index_select(-3, layout.group_shapes)
-    points, other = shapes[..., :G, :V, :], shapes[..., G:, :, :]  # (*P, G, V, 2), (*P, G, 3V+1, 2)
+    arm_origin = q[..., None, None, :2]
+    if tangents:
+        # D = 4 stacked rows: the values, then the derivatives along x, y and θ of the tracked
+        # body's rows (translated rows move along x and y; rotated rows turn by +90° along θ);
+        # the other shapes do not move.
+        turned = rotated[..., :1, :, :].flip(-1) * layout.turn  # (*P, 1, 3V+1, 2)
+        moving = torch.cat([layout.pose_tangent.expand(*q.shape[:-1], 2, -1, 2), turned], -3)
+        shapes = torch.cat([shapes.unsqueeze(-4), moving.unsqueeze(-3) * layout.tracked], -4)
+        stacked = torch.cat(
+            [q.unsqueeze(-2), layout.pose_directions.expand(*q.shape[:-1], 3, 3)], -2
+        )
+        arm_origin = stacked[..., None, None, :2]  # (*P, D, 1, 1, 2)
+    points, other = shapes[..., :G, :V, :], shapes[..., G:, :, :]  # (*P, [D,] G, V or 3V+1, 2)
     edges = other[..., V : 3 * V, :]  # (*P, G, 2V, 2): outward normals, then directions
-    projection = (points - other[..., 3 * V :, :]) @ edges.mT - layout.edge_offset
-    distance, along = projection[..., :V], projection[..., V:]  # (*P, G, V, V) each
+    relative = points - other[..., 3 * V :, :]
+    if tangents:
+        # Products of rows: value · derivative + derivative · value (the value's only once).
+        edges_value, relative_value = edges[..., :1, :, :, :], relative[..., :1, :, :, :]
+        projection = (
+            relative @ edges_value.mT
+            + relative_value @ (edges * layout.tangent_mask).mT
+            - layout.stacked_offset
+        )
+        moved = projection[..., 1:, :, :, :V]  # (*P, 3, G, V, V): the distances' derivatives
+        distance, along = projection[..., 0, :, :, :V], projection[..., 0, :, :, V:]
+    else:
+        projection = relative @ edges.mT - layout.edge_offset
+        distance, along = projection[..., :V], projection[..., V:]  # (*P, G, V, V) each
     phi = distance.amax(dim=-1, keepdim=True)
     tie = distance >= phi - layout.tie_tolerance
     closest = torch.where(tie, distance + layout.facing_offset, -_FAR).argmax(-1, keepdim=True)
+    phis = phi
+    if tangents:
+        # φ's derivative: that of the closest edge (the arg-max, ties going as the normal's).
+        turning = moved.gather(-1, closest.unsqueeze(-4).expand(*moved.shape[:-1], 1))
+        phis = torch.cat([phi.unsqueeze(-4), turning], dim=-4)  # (*P, D, G, V, 1)
     in_reach = (along >= -layout.margin) & (along <= layout.edge_reach)
     candidate = in_reach.gather(-1, closest) & (phi <= layout.margin)  # (*P, G, V, 1)
     # The closest edge's normal and direction: the slot's normal and tangent (n turned +90°).
-    index = closest.unsqueeze(-3).expand(*closest.shape[:-3], G, 2, V, 2)
-    frames = edges.unflatten(-2, (2, V)).gather(-2, index)  # (*P, G, 2, V, 2)
-    moments = (frames * (points - q[..., None, None, :2]).unsqueeze(-3)).sum(-1)  # r · n, r · t
+    index = closest.unsqueeze(-3)
+    if tangents:
+        index = index.unsqueeze(-5)
+    index = index.expand(*edges.shape[:-3], G, 2, V, 2)
+    frames = edges.unflatten(-2, (2, V)).gather(-2, index)  # (*P, [D,] G, 2, V, 2)
+    arm = (points - arm_origin).unsqueeze(-3)
+    if tangents:
+        frames_value = frames[..., :1, :, :, :, :]
+        frames_tangent = frames * layout.tangent_mask.unsqueeze(-1)
+        arm_value = arm[..., :1, :, :, :, :]
+        moments = torch.addcmul(frames_value * arm, frames_tangent, arm_value).sum(-1)
+    else:
+        moments = (frames * arm).sum(-1)  # r · n, r · t
     if q_kinematic.shape[-2]:
         # Point velocities of the groups' kinematic bodies (a group without one has sign 0).
         body = torch.cat([q_kinematic, v_kinematic], dim=-1).index_select(
             -2, layout.group_kinematic
         )
         body = body.unsqueeze(-2)  # (*P, G, 1, 6)
-        turned = (points - body[..., :2]).flip(-1) * layout.turn
-        velocity = body[..., 3:5] + body[..., 5:] * turned
-        known = (frames * velocity.unsqueeze(-3)).sum(-1)  # (*P, G, 2, V): along n, t
+        if tangents:
+            # The tangents keep only the angular velocity: ω turns the arm's derivative.
+            body = body.unsqueeze(-4) * layout.body_mask  # (*P, D, G, 1, 6)
+        spun = (points - body[..., :2]).flip(-1) * layout.turn
+        velocity = torch.addcmul(body[..., 3:5], body[..., 5:], spun).unsqueeze(-3)
+        if tangents:
+            known = torch.addcmul(
+                frames_value * velocity, frames_tangent, velocity[..., :1, :, :, :, :]
+            ).sum(-1)
+        else:
+            known = (frames * velocity).sum(-1)  # (*P, G, 2, V): along n, t
     else:
         known = torch.zeros_like(moments)
     features = torch.cat(
         [
-            phi,
+            phis,
             frames[..., 0, :, :],
             moments[..., 1, :, None],
             frames[..., 1, :, :],
@@ -369,7 +459,7 @@ def slot_rows(
         ],
         dim=-1,
     )
-    features = (features * layout.feature_sign).flatten(-3, -2)  # (*P, G·V, 9)
+    features = (features * layout.feature_sign).flatten(-3, -2)  # (*P, [D,] G·V, 9)
     candidate = candidate.flatten(-3)
     if layout.slot_source is None:
         return features, candidate
@@ -384,38 +474,36 @@ def _tikhonov(
     shift: Tensor,
     eye: Tensor,
     refinements: int,
-    *,
-    inverse: bool,
-) -> Tensor:
+) -> tuple[Tensor, Tensor]:
     """``solve_mode``'s iterated Tikhonov solve of ``A x = b``.
 
     Iterates ``(A + S) x_{i+1} = b + S x_i`` from ``x_0 = 0``, where ``A + S`` is ``system``
     plus ``diag(diagonal)`` and ``S = diag(shift)``: the solution when ``A`` is nonsingular,
-    the one of least ``xᵀ S x`` when it is singular and consistent.
+    the one of least ``xᵀ S x`` when it is singular and consistent. It inverts ``A + S`` once
+    (one LAPACK call) and iterates with products (``solve_mode`` solves with LU factors at
+    every iteration: the same iterates to rounding).
 
     Args:
         system: ``(*B, m, m)`` system matrices less their diagonal additions.
         diagonal: ``(*B, m)`` the additions to their diagonals (identity rows and shift).
-        b: ``(*B, m, 1)`` right-hand sides.
+        b: ``(*B, m, r)`` right-hand sides.
         shift: ``(*B, m, 1)`` or ``(*B, 1, 1)`` the diagonal of ``S``.
         eye: ``(m, m)`` identity.
         refinements: number of iterations.
-        inverse: iterate with the explicit inverse of ``A + S`` (one LAPACK call, then
-            products) instead of LU solves (one LAPACK call per iteration); the same iterates
-            to rounding.
 
     Returns:
-        ``(*B, m, 1)``.
+        ``(*B, m, r)``, and the inverse of ``A + S`` (for :func:`_iterate`).
     """
-    matrix = torch.addcmul(system, eye, diagonal.unsqueeze(-2))
-    if inverse:
-        solve = torch.linalg.inv_ex(matrix)[0].matmul
-    else:
-        LU, pivots, _ = torch.linalg.lu_factor_ex(matrix)
-        solve = functools.partial(torch.linalg.lu_solve, LU, pivots)
-    x: Tensor = solve(b)
+    inverse = torch.linalg.inv_ex(torch.addcmul(system, eye, diagonal.unsqueeze(-2)))[0]
+    return _iterate(inverse, b, shift, refinements), inverse
+
+
+def _iterate(inverse: Tensor, b: Tensor, shift: Tensor, refinements: int) -> Tensor:
+    """The iterations of :func:`_tikhonov` with the inverse of ``A + S`` (which broadcasts
+    against ``b``): a linear operator on ``b``."""
+    x = inverse @ b
     for _ in range(refinements - 1):
-        x = solve(b + shift * x)
+        x = inverse @ torch.addcmul(b, shift, x)
     return x
 
 
@@ -426,12 +514,11 @@ def linearize_modes(
     q_kinematic: Tensor,
     v_kinematic: Tensor,
     *,
-    fd_step: float,
     consistency_gap: float,
     consistency_tolerance: float,
     for_compile: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Every mode's step linearized at ``x`` by central differences, and its consistency.
+    """Every mode's step linearized at ``x`` (its exact Jacobian), and its consistency.
 
     Args:
         layout: the scene's layout.
@@ -439,7 +526,6 @@ def linearize_modes(
         x: ``(B, 6)`` float64 linearization points.
         q_kinematic: ``(B, Nk, 3)`` float64 kinematic poses.
         v_kinematic: ``(B, Nk, 3)`` float64 kinematic twists.
-        fd_step: step ``ε`` of the differences.
         consistency_gap: gaps of a mode's slots within ``±consistency_gap`` are taken as
             closed by the check: a mean a millimetre off a contact (whose ``φ/h`` correction
             would turn its impulse around) does not count against the mode, while a contact
@@ -447,23 +533,16 @@ def linearize_modes(
         consistency_tolerance: relative tolerance of the check.
         for_compile: lay every system out over ``W_max`` slots (the most any mode of the
             table activates) instead of the most the modes activate among this call's
-            candidates (the extra rows are the identity, decoupled), and solve the Tikhonov
-            iterations with explicit inverses: larger systems, the same results to rounding,
-            no host synchronisation and shapes that do not depend on the data, as
-            :func:`torch.compile` wants them.
+            candidates (the extra rows are the identity, decoupled): larger systems, the same
+            results to rounding, no host synchronisation and shapes that do not depend on the
+            data, as :func:`torch.compile` wants them.
 
     Returns:
         ``F (B, K, 6, 6)``, ``c (B, K, 6)`` and ``(B, K)`` bool: the mode is consistent.
     """
-    B, (K, S), h, eps, gap = x.shape[0], table.modes.shape, layout.h, fd_step, consistency_gap
-    P = len(layout.stencil_poses)
-    features, candidate = slot_rows(
-        layout,
-        torch.add(x[:, None, :3], layout.stencil_poses, alpha=eps),
-        q_kinematic.unsqueeze(1).expand(B, P, -1, 3),
-        v_kinematic.unsqueeze(1).expand(B, P, -1, 3),
-    )  # (B, 7, S, 9), (B, 7, S)
-    centre, candidate = features[:, 0], candidate[:, 0]  # (B, S, 9), (B, S)
+    B, (K, S), h, gap = x.shape[0], table.modes.shape, layout.h, consistency_gap
+    features, candidate = slot_rows(layout, x[:, :3], q_kinematic, v_kinematic, tangents=True)
+    centre = features[:, 0]  # (B, S, 9); features (B, 4, S, 9): value, d/dx, d/dy, d/dθ
 
     # Each mode's slots: those it activates among the candidates, in slot order, then others.
     slots = table.slots.expand(B, K, -1)
@@ -475,30 +554,35 @@ def linearize_modes(
     sticks = acting & table.sticks.expand(B, K, -1).gather(-1, order)
     slide = table.slide.expand(B, K, -1).gather(-1, order)[:, :, None, :, None]
 
-    # solve_mode on those slots at the 14 points: B·K·14 problems. Constraint rows C:
-    # normals, then tangents; impulse rows G: the same with μ Jt_d added to the normals of
-    # sliding slots. The rows of acting normals and sticking tangents make the Schur system
-    # A = C M⁻¹ Gᵀ, x = impulses; the other rows are the identity, with a zero right side.
-    index = (layout.stencil_pose * S + keep.unsqueeze(2)).view(B, -1, 1)  # (B, K·14·W, 1)
-    rows = features.flatten(1, 2).gather(1, index.expand(-1, -1, 9)).view(B, K, -1, W, 9)
+    # solve_mode on those slots: constraint rows C (normals, then tangents) and impulse rows
+    # G (the same with μ Jt_d added to the normals of sliding slots); the rows of acting
+    # normals and sticking tangents make the Schur system A = C U, U = M⁻¹ Gᵀ, for the
+    # impulses; the other rows are the identity, with a zero right side. All of it is linear
+    # in the slot rows, so their derivatives along the pose (stacked behind them) give dC,
+    # dU and the derivative of the target (bn + φ/h, bt) by the same operations.
+    index = (torch.arange(4, device=x.device)[:, None] * S + keep.unsqueeze(2)).view(B, -1, 1)
+    rows = features.flatten(1, 2).gather(1, index.expand(-1, -1, 9)).view(B, K, 4, W, 9)
     phi, Jn, Jt, bn, bt = rows.split([1, 3, 3, 1, 1], dim=-1)
     on = torch.cat([acting, sticks, acting, sticks], dim=-1).to(torch.float64)  # (B, K, 4W)
     rows_on = on[:, :, None, :, None]
+    on_c = rows_on[..., : 2 * W, :]
     CG = torch.cat([Jn, Jt, Jn + slide * Jt, Jt], dim=-2) * rows_on
-    C, U = CG[..., : 2 * W, :], (CG[..., 2 * W :, :] * layout.inverse_mass).mT  # U = M⁻¹ Gᵀ
-    system = C @ U  # (B, K, 14, 2W, 2W)
-    point = torch.add(x.unsqueeze(1), layout.stencil, alpha=eps)  # (B, 14, 6)
-    v_free = (point[..., 3:] + layout.gravity_step)[:, None, :, :, None]  # (B, 1, 14, 3, 1)
-    # The last point closes the mode's gaps up to the dead zone (the consistency check).
-    phi = torch.addcmul(phi, phi.clamp(-gap, gap), layout.closing, value=-1.0)
-    target = torch.cat([bn + phi / h, bt], dim=-2)  # (B, K, 14, 2W, 1)
-    b = torch.addcmul(C @ v_free, target, rows_on[..., : 2 * W, :]).neg()
+    C, U = CG[..., : 2 * W, :], (CG[..., 2 * W :, :] * layout.inverse_mass).mT  # (B, K, 4, ·, ·)
+    target = torch.cat([bn + phi / h, bt], dim=-2)  # (B, K, 4, 2W, 1)
+    C0, U0 = C[:, :, :1], U[:, :, :1]
+    system = C0 @ U0  # (B, K, 1, 2W, 2W)
+    v_free = (x[:, 3:] + layout.gravity_step)[:, None, None, :, None]  # (B, 1, 1, 3, 1)
+    # Two points: x, and x with the mode's gaps closed up to the dead zone (the consistency
+    # check's).
+    closed = torch.nn.functional.pad(phi[:, :, :1].clamp(-gap, gap), (0, 0, 0, W))
+    target_points = torch.addcmul(target[:, :, :1], closed, layout.closing, value=-1.0 / h)
+    b = torch.addcmul(C0 @ v_free, target_points, on_c).neg()  # (B, K, 2, 2W, 1)
     off = 1.0 - on[:, :, None, : 2 * W]  # (B, K, 1, 2W): the identity rows
     scale = system.diagonal(dim1=-2, dim2=-1).abs().amax(dim=-1, keepdim=True).clamp_min(1.0)
-    shift = (_SQRT_EPS * scale).unsqueeze(-1)  # (B, K, 14, 1, 1)
+    shift = (_SQRT_EPS * scale).unsqueeze(-1)  # (B, K, 1, 1, 1)
     eye = table.eyes[W - 1]
-    impulses = _tikhonov(
-        system, off + shift[..., 0], b, shift, eye, SOLVE_MODE_REFINEMENTS, inverse=for_compile
+    impulses, inverse = _tikhonov(
+        system, off + shift[..., 0], b, shift, eye, SOLVE_MODE_REFINEMENTS
     )
     # Redundant sticking rows leave the impulse split free: solve_mode prefers normal support
     # and shares friction in proportion to the normal loads (kept for modes that stick).
@@ -506,31 +590,34 @@ def linearize_modes(
     share = load.amax(dim=-2, keepdim=True).clamp_min(torch.finfo(torch.float64).eps)
     friction = SOLVE_MODE_FRICTION_COST * share / (load + SOLVE_MODE_MIN_LOAD_SHARE * share)
     weighted = torch.cat([shift.expand_as(load), shift * friction], dim=-2)  # (..., 2W, 1)
-    split = _tikhonov(
-        system,
-        off + weighted[..., 0],
-        b,
-        weighted,
-        eye,
-        SOLVE_MODE_WEIGHTED_REFINEMENTS,
-        inverse=for_compile,
+    split, split_inverse = _tikhonov(
+        system, off + weighted[..., 0], b, weighted, eye, SOLVE_MODE_WEIGHTED_REFINEMENTS
     )
-    impulses = torch.where(sticks.any(dim=-1)[:, :, None, None, None], split, impulses)
-    v_next = (v_free + U @ impulses).squeeze(-1)  # (B, K, 14, 3)
+    sticky = sticks.any(dim=-1)[:, :, None, None, None]
+    impulses = torch.where(sticky, split, impulses)
+    v_next = v_free + U0 @ impulses  # (B, K, 2, 3, 1)
 
-    # Central differences of f = (q + h v⁺, v⁺), one-sided at a kink.
-    f = torch.cat([point[:, None, :, :3] + h * v_next, v_next], dim=-1)  # (B, K, 14, 6)
-    steps = (f[:, :, 1 : 1 + 2 * _STATE] - f[:, :, :1]) / eps  # forward, −backward
-    forward, backward = steps[:, :, :_STATE], steps[:, :, _STATE:].neg()  # (B, K, j, i)
-    size = torch.linalg.vector_norm(steps, dim=-1, keepdim=True).unflatten(2, (2, _STATE))
-    smaller, larger = torch.aminmax(size, dim=2)  # (B, K, j, 1)
-    kink = larger > _KINK_RATIO * (smaller + 1.0)
-    one_sided = torch.where(size[:, :, 0] <= size[:, :, 1], forward, backward)
-    F = torch.where(kink, one_sided, 0.5 * (forward + backward)).mT  # (B, K, 6, 6)
-    c = f[:, :, 0] - (F @ x[:, None, :, None]).squeeze(-1)
+    # The exact derivative of the step at x along the six coordinates j (the discrete choices
+    # held): with w_j = dv_free + dU x (dv_free = e_j along the twist, dU along the pose),
+    # dx = P(db − dA x) = −P(dC v⁺ + C w_j + dtarget), P the solve above (its weights held),
+    # and dv⁺ = w_j + U dx.
+    v_plus = v_next[:, :, :1]
+    w = torch.cat(
+        [U[:, :, 1:] @ impulses[:, :, :1], layout.twist_tangents.expand(B, K, 3, 3, 1)], 2
+    )
+    moving = torch.addcmul(C[:, :, 1:] @ v_plus, target[:, :, 1:], on_c)  # (B, K, 3, 2W, 1)
+    rhs = (C0 @ w + torch.nn.functional.pad(moving, (0, 0, 0, 0, 0, 3))).neg()  # (B, K, 6, ·)
+    held = torch.where(sticky, split_inverse[:, :, :1], inverse)
+    weights = torch.where(sticky, weighted[:, :, :1], shift)
+    derivative = _iterate(held, rhs, weights, SOLVE_MODE_WEIGHTED_REFINEMENTS)
+    dv = (w + U0 @ derivative).squeeze(-1).mT  # (B, K, 3, 6): ∂v⁺/∂x
+    F = torch.cat([torch.add(layout.embed, dv, alpha=h), dv], dim=-2)  # (B, K, 6, 6)
+    v_step = v_plus[:, :, 0, :, 0]  # (B, K, 3)
+    f = torch.cat([x[:, None, :3] + h * v_step, v_step], dim=-1)  # (B, K, 6)
+    c = f - (F @ x[:, None, :, None]).squeeze(-1)
 
     # is_consistent at the last point, on every slot (impulses placed back on their slots).
-    v_touch = v_next[:, :, -1, None, :, None]  # (B, K, 1, 3, 1)
+    v_touch = v_next[:, :, -1, None]  # (B, K, 1, 3, 1)
     impulse = impulses[:, :, -1, :, 0].unflatten(-1, (2, W))  # (B, K, 2, W): normal, tangent
     placed = impulse.new_zeros(B, K, 2, S).scatter(
         -1, keep.unsqueeze(2).expand_as(impulse), impulse
@@ -544,7 +631,7 @@ def linearize_modes(
     slip = velocity[..., 1, 0] + centre[:, None, :, 8]
     # The scales of problem_scales (is_consistent's): velocities the step starts from or the
     # impulses cause at the candidate slots, the known terms, penetration recovery; momenta.
-    free = v_free[:, :, -1]  # (B, 1, 3, 1)
+    free = v_free[:, :, 0]  # (B, 1, 3, 1)
     caused = v_touch[:, :, 0] - free  # (B, K, 3, 1): v⁺ − v_free
     rates = torch.cat(
         [
