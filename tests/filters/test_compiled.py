@@ -143,8 +143,8 @@ def test_compiled_contact_model_equals_eager(monkeypatch: pytest.MonkeyPatch) ->
 
     # A few filter steps on a pushed box, both kernels compiled, against the same kernels run
     # eagerly (the model's compile-friendly linearization included: the eager model's own,
-    # sized by the data and solved by LU, differs by more than rounding where a mode's system
-    # is regularised; the first half of this test bounds that difference).
+    # sized by the data, differs by more than rounding where a mode's system is regularised;
+    # the first test of the linearization bounds that difference).
     steps = 6
     scene, train, _ = _pushed_box(8, 30, seed=0)
     table, ids, _ = collect_modes(train.mode)
