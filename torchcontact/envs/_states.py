@@ -7,7 +7,6 @@ maps to integer state ids in one pass, and an id maps back to a hashable
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from itertools import pairwise
 
@@ -15,6 +14,7 @@ import torch
 from torch import Tensor
 
 from torchcontact._checks import check_positive
+from torchcontact.geometry import wrap_angle
 from torchcontact.states import (
     ContactFeature,
     ContactSet,
@@ -164,8 +164,7 @@ class PegInHoleStates:
         half = self.peg_height / 2
         bottom_x = x + half * torch.sin(theta)
         bottom_y = y - half * torch.cos(theta) - self.hole_depth
-        wrapped = theta - 2 * math.pi * torch.floor((theta + math.pi) / (2 * math.pi))
-        return torch.stack([bottom_x, bottom_y, wrapped], dim=-1)
+        return torch.stack([bottom_x, bottom_y, wrap_angle(theta)], dim=-1)
 
     def cell_indices(self, peg_pose: Tensor) -> Tensor:
         """Per-axis cell indices ``(i_x, i_y, i_θ)`` of peg poses.
