@@ -24,7 +24,7 @@ from torchcontact.filters import (
     collect_modes,
     empirical_transition,
 )
-from torchcontact.filters._planar_linearization import slot_rows
+from torchcontact.filters._planar_slots import slot_rows
 from torchcontact.geometry import HalfPlane, Polygon
 from torchcontact.sim import (
     Body,

@@ -13,13 +13,8 @@ from torch import Tensor
 from torchcontact._checks import FLOAT_DTYPES, check_real, describe
 from torchcontact.contact import solve_mode
 from torchcontact.filters._compiled import kernel
-from torchcontact.filters._planar_linearization import (
-    ModeTable,
-    SlotLayout,
-    linearize_modes,
-    mode_table,
-    slot_layout,
-)
+from torchcontact.filters._planar_linearization import ModeTable, linearize_modes, mode_table
+from torchcontact.filters._planar_slots import SlotLayout, slot_layout
 from torchcontact.filters._rbpf_belief import RBPFBelief
 from torchcontact.filters._switching import LinearSwitchingModel, ModeDynamics
 from torchcontact.sim import Scene, SceneState, contact_problem
