@@ -96,3 +96,27 @@ def test_library_box_example_equals_the_hand_written_one() -> None:
     by_hand = box_problem(q=q, v=v, **options)
     for name in ("M", "v", "f", "Jn", "Jt", "phi", "mu"):
         torch.testing.assert_close(getattr(ours, name), getattr(by_hand, name), msg=name)
+
+
+def test_unchecked_construction_broadcasts_like_the_checked_one() -> None:
+    """``ContactProblem.unchecked`` gives the validated constructor's fields and batch shape."""
+    generator = torch.Generator().manual_seed(3)
+    fields = {
+        "M": torch.eye(3, dtype=torch.float64) * 2.0,
+        "v": torch.randn(5, 3, dtype=torch.float64, generator=generator),
+        "f": torch.randn(3, dtype=torch.float64, generator=generator),
+        "Jn": torch.randn(5, 2, 3, dtype=torch.float64, generator=generator),
+        "Jt": torch.randn(2, 1, 3, dtype=torch.float64, generator=generator).repeat(1, 2, 1)
+        * torch.tensor([1.0, -1.0], dtype=torch.float64)[:, None],
+        "phi": torch.rand(2, dtype=torch.float64, generator=generator),
+        "mu": torch.full((2,), 0.5, dtype=torch.float64),
+        "mask": torch.tensor([True, False]),
+        "bn": torch.zeros(2, dtype=torch.float64),
+        "bt": torch.zeros(2, 2, dtype=torch.float64),
+    }
+    checked = ContactProblem(**fields, h=0.01)
+    unchecked = ContactProblem.unchecked(**fields, h=0.01)
+    assert unchecked.batch_shape == checked.batch_shape == (5,)
+    for name in ("M", "v", "f", "Jn", "Jt", "phi", "mu", "mask", "bn", "bt"):
+        assert getattr(unchecked, name).shape == getattr(checked, name).shape, name
+    assert unchecked.h == checked.h

@@ -18,6 +18,10 @@ from torchcontact._checks import (
 )
 
 _TENSOR_FIELDS = ("M", "v", "f", "Jn", "Jt", "phi", "mu", "mask", "bn", "bt")
+#: Number of trailing (non-batch) dimensions of each tensor field.
+_TRAILING_DIMS = {
+    "M": 2, "v": 1, "f": 1, "Jn": 2, "Jt": 3, "phi": 1, "mu": 1, "mask": 1, "bn": 1, "bt": 2,
+}  # fmt: skip
 
 
 @dataclass(frozen=True, eq=False)
@@ -141,6 +145,47 @@ class ContactProblem:
         """``(*B, n)`` contact-free velocity ``v + h M⁻¹ f`` (Cholesky solve)."""
         L = torch.linalg.cholesky(self.M)
         return self.v + self.h * torch.cholesky_solve(self.f.unsqueeze(-1), L).squeeze(-1)
+
+    @classmethod
+    def unchecked(
+        cls,
+        *,
+        M: Tensor,
+        v: Tensor,
+        f: Tensor,
+        Jn: Tensor,
+        Jt: Tensor,
+        phi: Tensor,
+        mu: Tensor,
+        h: float,
+        mask: Tensor,
+        bn: Tensor,
+        bt: Tensor,
+    ) -> ContactProblem:
+        """A problem from fields that are valid by construction, without validating them.
+
+        For assemblers whose inputs were validated already (a simulator builds its problem
+        from a checked state): the fields are only broadcast to their common batch shape.
+        Passing anything that the constructor would reject is undefined behaviour.
+
+        Args:
+            M, v, f, Jn, Jt, phi, mu, mask, bn, bt: as the attributes, every one given.
+            h: time step in seconds, ``> 0``.
+        """
+        values = {
+            "M": M, "v": v, "f": f, "Jn": Jn, "Jt": Jt, "phi": phi,
+            "mu": mu, "mask": mask, "bn": bn, "bt": bt,
+        }  # fmt: skip
+        trailing = {name: _TRAILING_DIMS[name] for name in _TENSOR_FIELDS}
+        batch = torch.broadcast_shapes(
+            *(value.shape[: value.dim() - trailing[name]] for name, value in values.items())
+        )
+        problem = object.__new__(cls)
+        for name, value in values.items():
+            tail = value.shape[value.dim() - trailing[name] :]
+            object.__setattr__(problem, name, value.expand(*batch, *tail))
+        object.__setattr__(problem, "h", float(h))
+        return problem
 
     def map_tensors(self, fn: Any) -> ContactProblem:
         """Apply ``fn`` to every tensor field (e.g. indexing, reshaping, casting).
