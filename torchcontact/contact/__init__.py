@@ -2,10 +2,11 @@
 
 The Stewart–Trinkle contact step (:class:`ContactProblem`) is solved exactly by Lemke's method,
 by OSQP with staggered projections, by batched projected Gauss–Seidel, or, with the contact
-mode known, by one differentiable linear solve (:func:`solve_mode`). The settings of that
-solve's regularisation (``SOLVE_MODE_REFINEMENTS``, ``SOLVE_MODE_WEIGHTED_REFINEMENTS``,
-``SOLVE_MODE_FRICTION_COST``, ``SOLVE_MODE_MIN_LOAD_SHARE``) are exported for code that
-repeats it, such as the filters' per-mode linearization.
+mode known, by one differentiable linear solve (:func:`solve_mode`). That solve's kernel
+(:func:`tikhonov_system`, :func:`iterated_tikhonov`) and the settings of its regularisation
+(``SOLVE_MODE_REFINEMENTS``, ``SOLVE_MODE_WEIGHTED_REFINEMENTS``,
+``SOLVE_MODE_FRICTION_COST``, ``SOLVE_MODE_MIN_LOAD_SHARE``) are exported for the code that
+differentiates it in closed form, the filters' per-mode linearization.
 """
 
 from torchcontact.contact._active_set import solve_active_set, update_mode
@@ -33,6 +34,7 @@ from torchcontact.contact._problem import ContactProblem
 from torchcontact.contact._qp import solve_qp
 from torchcontact.contact._solution import Solution, SolveStatus
 from torchcontact.contact._solve import Method, solve
+from torchcontact.contact._tikhonov import TikhonovSystem, iterated_tikhonov, tikhonov_system
 
 __all__ = [
     "BOX_CORNER_SIGNS",
@@ -49,9 +51,11 @@ __all__ = [
     "Method",
     "Solution",
     "SolveStatus",
+    "TikhonovSystem",
     "contact_mode",
     "delassus",
     "is_consistent",
+    "iterated_tikhonov",
     "lcp_residual",
     "lemke",
     "planar_box_problem",
@@ -63,5 +67,6 @@ __all__ = [
     "solve_mode",
     "solve_pgs",
     "solve_qp",
+    "tikhonov_system",
     "update_mode",
 ]

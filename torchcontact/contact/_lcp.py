@@ -36,8 +36,7 @@ def delassus(problem: ContactProblem) -> tuple[Tensor, Tensor]:
         Cholesky solves.
     """
     J = contact_jacobian(problem)
-    L = torch.linalg.cholesky(problem.M)
-    Minv_JT = torch.cholesky_solve(J.transpose(-1, -2), L)
+    Minv_JT = problem.mass_solve(J.transpose(-1, -2))
     return J @ Minv_JT, Minv_JT
 
 

@@ -14,6 +14,7 @@ from torchcontact.contact._lcp import (
 )
 from torchcontact.contact._problem import ContactProblem
 from torchcontact.contact._solution import Solution, SolveStatus
+from torchcontact.contact._tikhonov import iterated_tikhonov, tikhonov_system
 
 #: Iterated-Tikhonov refinements of the constraint solve (see :func:`solve_mode`).
 SOLVE_MODE_REFINEMENTS = 5
@@ -122,9 +123,8 @@ def solve_mode(
     G = torch.cat([G_normal, J_basis], dim=-2)
     rows_active = torch.cat([active, sticking.repeat_interleave(r, dim=-1)], dim=-1)
 
-    L = torch.linalg.cholesky(problem.M)
-    v_free = problem.v + problem.h * torch.cholesky_solve(problem.f.unsqueeze(-1), L).squeeze(-1)
-    Minv_GT = torch.cholesky_solve(G.transpose(-1, -2), L)
+    v_free = problem.v_free()
+    Minv_GT = problem.mass_solve(G.transpose(-1, -2))
     target = torch.cat(
         [
             -(problem.b_normal + problem.phi / problem.h),
@@ -146,22 +146,8 @@ def solve_mode(
         )
     else:
         x = _iterated_tikhonov(A, b, torch.ones_like(b), refinements=SOLVE_MODE_REFINEMENTS)
-    if initial_impulses is None and K and bool(sticking.any()):
-        # Redundant sticking rows leave the split of the impulses free. Prefer normal support
-        # over friction, and share friction in proportion to the normal impulses (minimum
-        # Σ pn² + c Σ λ²/pn), which keeps every share inside its cone whenever the total is
-        # inside the total cone.
-        load = x[..., :K].clamp(min=0.0)
-        # (floored at eps: with no load at all the weights only need to be finite, and a
-        # denormal floor would underflow to NaN in the backward pass)
-        share = load.amax(dim=-1, keepdim=True).clamp_min(torch.finfo(problem.dtype).eps)
-        tangent_weight = (
-            SOLVE_MODE_FRICTION_COST * share / (load + SOLVE_MODE_MIN_LOAD_SHARE * share)
-        )
-        weights = torch.cat(
-            [torch.ones_like(load), tangent_weight.repeat_interleave(r, dim=-1)], -1
-        )
-        x = _iterated_tikhonov(A, b, weights, refinements=SOLVE_MODE_WEIGHTED_REFINEMENTS)
+    if initial_impulses is None and K:
+        x = _split_friction(A, b, x, sticking.any(dim=-1), K=K, r=r)
 
     v_next = v_free + (Minv_GT @ x.unsqueeze(-1)).squeeze(-1)
     pn = x[..., :K]
@@ -187,6 +173,46 @@ def solve_mode(
     return Solution(v_next=v_next, pn=pn, pt=pt, mode=mode, status=status)
 
 
+def _split_friction(A: Tensor, b: Tensor, x: Tensor, sticks: Tensor, *, K: int, r: int) -> Tensor:
+    """Re-solve the problems with sticking slots with weights that split friction by load.
+
+    Redundant sticking rows leave the split of the impulses free. Prefer normal support over
+    friction, and share friction in proportion to the normal impulses (minimum
+    ``Σ pn² + c Σ λ²/pn``), which keeps every share inside its cone whenever the total is
+    inside the total cone. Only the problems that have a sticking slot are solved again.
+
+    Args:
+        A: ``(*B, m, m)`` Schur systems, ``m = K + K·r``.
+        b: ``(*B, m)`` their right-hand sides.
+        x: ``(*B, m)`` the unweighted solutions (their normal impulses set the weights).
+        sticks: ``(*B,)`` bool, the problem has a sticking slot.
+        K: number of slots.
+        r: tangent dimension.
+
+    Returns:
+        ``(*B, m)``: ``x`` with the problems that stick solved again.
+    """
+    if not bool(sticks.any()):
+        return x
+    every = bool(sticks.all())
+    m = x.shape[-1]
+    index = torch.nonzero(sticks.reshape(-1)).squeeze(-1)
+    if not every:
+        A, b, chosen = A.reshape(-1, m, m)[index], b.reshape(-1, m)[index], x.reshape(-1, m)[index]
+    else:
+        chosen = x
+    load = chosen[..., :K].clamp(min=0.0)
+    # (floored at eps: with no load at all the weights only need to be finite, and a denormal
+    # floor would underflow to NaN in the backward pass)
+    share = load.amax(dim=-1, keepdim=True).clamp_min(torch.finfo(x.dtype).eps)
+    tangent_weight = SOLVE_MODE_FRICTION_COST * share / (load + SOLVE_MODE_MIN_LOAD_SHARE * share)
+    weights = torch.cat([torch.ones_like(load), tangent_weight.repeat_interleave(r, dim=-1)], -1)
+    split = _iterated_tikhonov(A, b, weights, refinements=SOLVE_MODE_WEIGHTED_REFINEMENTS)
+    if every:
+        return split
+    return x.reshape(-1, m).index_put((index,), split).reshape(x.shape)
+
+
 def _largest(values: Tensor) -> Tensor:
     """``(*B,)`` largest of non-negative ``values (*B, m)``, zero when ``m == 0``."""
     return torch.nn.functional.pad(values, (0, 1)).amax(dim=-1)
@@ -197,30 +223,33 @@ def _iterated_tikhonov(
 ) -> Tensor:
     """Solve ``A x = b`` (batched, possibly singular but consistent) by iterated Tikhonov.
 
-    Iterates ``(A + ε P) x_{i+1} = b + ε P x_i`` from ``x_0`` (default 0) with
-    ``P = diag(weights)``.
+    :func:`~torchcontact.contact.iterated_tikhonov` with ``S = ε diag(weights)``,
+    ``ε = √eps · max|diag A|``.
 
     Args:
         A: ``(*B, m, m)`` system matrices.
         b: ``(*B, m)`` right-hand sides.
-        weights: ``(*B, m)`` positive regularisation weights ``P``.
+        weights: ``(*B, m)`` positive regularisation weights.
         refinements: number of iterations.
         start: ``(*B, m)`` starting point ``x_0`` (treated as a constant), default zeros.
 
     Returns:
         ``(*B, m)``: the solution when ``A`` is nonsingular; when singular and consistent, the
-        solution of least ``xᵀ P x`` (up to the regularisation's geometric convergence).
+        solution of least ``(x − x_0)ᵀ S (x − x_0)`` (up to the regularisation's geometric
+        convergence).
     """
     if A.shape[-1] == 0:
         return b
     eps = torch.finfo(A.dtype).eps ** 0.5
     diagonal_scale = A.diagonal(dim1=-2, dim2=-1).abs().amax(dim=-1, keepdim=True)
-    shift = eps * diagonal_scale * weights
-    LU, pivots = torch.linalg.lu_factor(A + torch.diag_embed(shift))
-    x = torch.zeros_like(b) if start is None else start.detach()
-    for _ in range(refinements):
-        x = torch.linalg.lu_solve(LU, pivots, (b + shift * x).unsqueeze(-1)).squeeze(-1)
-    return x
+    system = tikhonov_system(A, eps * diagonal_scale * weights)
+    x = iterated_tikhonov(
+        system,
+        b.unsqueeze(-1),
+        refinements=refinements,
+        start=None if start is None else start.unsqueeze(-1),
+    )
+    return x.squeeze(-1)
 
 
 def _impulse_coordinates(

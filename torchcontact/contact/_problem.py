@@ -143,8 +143,30 @@ class ContactProblem:
 
     def v_free(self) -> Tensor:
         """``(*B, n)`` contact-free velocity ``v + h M⁻¹ f`` (Cholesky solve)."""
-        L = torch.linalg.cholesky(self.M)
-        return self.v + self.h * torch.cholesky_solve(self.f.unsqueeze(-1), L).squeeze(-1)
+        return self.v + self.h * self.mass_solve(self.f.unsqueeze(-1)).squeeze(-1)
+
+    def mass_solve(self, rhs: Tensor) -> Tensor:
+        """``M⁻¹ rhs`` by Cholesky factorization, differentiable.
+
+        A mass matrix shared by the whole batch (a field broadcast from ``(n, n)``, as
+        assemblers build it) is factored once and solved with every right-hand side of the
+        batch as one block of columns, instead of once per batch entry.
+
+        Args:
+            rhs: ``(*B, n, k)`` right-hand sides (``*B`` broadcasts to the problem's).
+
+        Returns:
+            ``(*B, n, k)``.
+        """
+        M, batch = self.M, self.batch_shape
+        shared = bool(batch) and 0 not in batch and all(s == 0 for s in M.stride()[: len(batch)])
+        if not shared:
+            return torch.cholesky_solve(rhs, torch.linalg.cholesky(M))
+        L = torch.linalg.cholesky(M[(0,) * len(batch)])
+        rhs = rhs.expand(*batch, *rhs.shape[-2:])
+        n, k = rhs.shape[-2:]
+        solved = torch.cholesky_solve(rhs.movedim(-2, 0).reshape(n, -1), L)
+        return solved.reshape(n, *batch, k).movedim(0, -2)
 
     @classmethod
     def unchecked(

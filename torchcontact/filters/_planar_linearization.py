@@ -26,9 +26,10 @@ them per call, whatever the batch:
   pass (the friction split among redundant sticking contacts) runs on every mode and is kept
   for those with sticking slots, as ``solve_mode`` on one mode: it leaves the step unchanged
   where the mode's system is solvable, and decides the regularised answer where it is not.
-  Each pass inverts its matrices once and iterates with products;
+  Each pass factors its matrices once (:class:`~torchcontact.contact.TikhonovSystem`, the
+  solve ``solve_mode`` runs) and iterates with products;
 * the derivative along each of the six coordinates at once: ``dx = P(db − dA x)`` with
-  ``dA = dC U + C dU`` and ``P`` the iterated Tikhonov solve of the pass kept (its inverse
+  ``dA = dC U + C dU`` and ``P`` the iterated Tikhonov solve of the pass kept (its factors
   and weights held), ``dv⁺ = dU x + U dx + dv_free`` (``dv_free`` the unit twists along
   ``v``, zero along the pose), so that ``F = [[I + h ∂v⁺/∂q, h ∂v⁺/∂v], [∂v⁺/∂q, ∂v⁺/∂v]]``;
 * ``is_consistent``'s tests on every slot, knowing which carry impulses;
@@ -52,6 +53,8 @@ from torchcontact.contact import (
     SOLVE_MODE_MIN_LOAD_SHARE,
     SOLVE_MODE_REFINEMENTS,
     SOLVE_MODE_WEIGHTED_REFINEMENTS,
+    iterated_tikhonov,
+    tikhonov_system,
 )
 from torchcontact.filters._planar_slots import SlotLayout, slot_rows
 
@@ -77,7 +80,6 @@ class ModeTable:
         sticks: ``(K, W_max)`` bool, the slot sticks in the mode (mode 1).
         slide: ``(K, W_max)`` float64 ``±μ`` of slots sliding with friction along ``±t``,
             else 0.
-        eyes: the ``(2w, 2w)`` float64 identities, ``w = 1 … W_max``.
         acting: ``(K, S)`` bool, the slot carries an impulse in the mode (mode ≥ 1).
         separated: ``(K, S)`` bool, mode 0.
         sticking: ``(K, S)`` bool, mode 1.
@@ -89,7 +91,6 @@ class ModeTable:
     activates: Tensor
     sticks: Tensor
     slide: Tensor
-    eyes: tuple[Tensor, ...]
     acting: Tensor
     separated: Tensor
     sticking: Tensor
@@ -110,52 +111,11 @@ def mode_table(layout: SlotLayout, modes: Tensor) -> ModeTable:
         activates=acting.gather(-1, slots),
         sticks=(modes == 1).gather(-1, slots),
         slide=(sign * layout.mu).gather(-1, slots),
-        eyes=tuple(torch.eye(2 * w, dtype=f64, device=modes.device) for w in range(1, W + 1)),
         acting=acting,
         separated=modes == 0,
         sticking=modes == 1,
         slip_sign=1.0 - 2.0 * (modes == 3).to(f64),
     )
-
-
-def _tikhonov(
-    system: Tensor,
-    diagonal: Tensor,
-    b: Tensor,
-    shift: Tensor,
-    eye: Tensor,
-    refinements: int,
-) -> tuple[Tensor, Tensor]:
-    """``solve_mode``'s iterated Tikhonov solve of ``A x = b``.
-
-    Iterates ``(A + S) x_{i+1} = b + S x_i`` from ``x_0 = 0``, where ``A + S`` is ``system``
-    plus ``diag(diagonal)`` and ``S = diag(shift)``: the solution when ``A`` is nonsingular,
-    the one of least ``xᵀ S x`` when it is singular and consistent. It inverts ``A + S`` once
-    (one LAPACK call) and iterates with products (``solve_mode`` solves with LU factors at
-    every iteration: the same iterates to rounding).
-
-    Args:
-        system: ``(*B, m, m)`` system matrices less their diagonal additions.
-        diagonal: ``(*B, m)`` the additions to their diagonals (identity rows and shift).
-        b: ``(*B, m, r)`` right-hand sides.
-        shift: ``(*B, m, 1)`` or ``(*B, 1, 1)`` the diagonal of ``S``.
-        eye: ``(m, m)`` identity.
-        refinements: number of iterations.
-
-    Returns:
-        ``(*B, m, r)``, and the inverse of ``A + S`` (for :func:`_iterate`).
-    """
-    inverse = torch.linalg.inv_ex(torch.addcmul(system, eye, diagonal.unsqueeze(-2)))[0]
-    return _iterate(inverse, b, shift, refinements), inverse
-
-
-def _iterate(inverse: Tensor, b: Tensor, shift: Tensor, refinements: int) -> Tensor:
-    """The iterations of :func:`_tikhonov` with the inverse of ``A + S`` (which broadcasts
-    against ``b``): a linear operator on ``b``."""
-    x = inverse @ b
-    for _ in range(refinements - 1):
-        x = inverse @ torch.addcmul(b, shift, x)
-    return x
 
 
 def linearize_modes(
@@ -231,19 +191,17 @@ def linearize_modes(
     off = 1.0 - on[:, :, None, : 2 * W]  # (B, K, 1, 2W): the identity rows
     scale = system.diagonal(dim1=-2, dim2=-1).abs().amax(dim=-1, keepdim=True).clamp_min(1.0)
     shift = (_SQRT_EPS * scale).unsqueeze(-1)  # (B, K, 1, 1, 1)
-    eye = table.eyes[W - 1]
-    impulses, inverse = _tikhonov(
-        system, off + shift[..., 0], b, shift, eye, SOLVE_MODE_REFINEMENTS
-    )
+    A = system + torch.diag_embed(off)
+    first = tikhonov_system(A, shift[..., 0].expand_as(off))
+    impulses = iterated_tikhonov(first, b, refinements=SOLVE_MODE_REFINEMENTS)
     # Redundant sticking rows leave the impulse split free: solve_mode prefers normal support
     # and shares friction in proportion to the normal loads (kept for modes that stick).
     load = impulses[..., :W, :].clamp(min=0.0)
     share = load.amax(dim=-2, keepdim=True).clamp_min(torch.finfo(torch.float64).eps)
     friction = SOLVE_MODE_FRICTION_COST * share / (load + SOLVE_MODE_MIN_LOAD_SHARE * share)
     weighted = torch.cat([shift.expand_as(load), shift * friction], dim=-2)  # (..., 2W, 1)
-    split, split_inverse = _tikhonov(
-        system, off + weighted[..., 0], b, weighted, eye, SOLVE_MODE_WEIGHTED_REFINEMENTS
-    )
+    second = tikhonov_system(A, weighted[..., 0])
+    split = iterated_tikhonov(second, b, refinements=SOLVE_MODE_WEIGHTED_REFINEMENTS)
     sticky = sticks.any(dim=-1)[:, :, None, None, None]
     impulses = torch.where(sticky, split, impulses)
     v_next = v_free + U0 @ impulses  # (B, K, 2, 3, 1)
@@ -258,9 +216,10 @@ def linearize_modes(
     )
     moving = torch.addcmul(C[:, :, 1:] @ v_plus, target[:, :, 1:], on_c)  # (B, K, 3, 2W, 1)
     rhs = (C0 @ w + torch.nn.functional.pad(moving, (0, 0, 0, 0, 0, 3))).neg()  # (B, K, 6, ·)
-    held = torch.where(sticky, split_inverse[:, :, :1], inverse)
-    weights = torch.where(sticky, weighted[:, :, :1], shift)
-    derivative = _iterate(held, rhs, weights, SOLVE_MODE_WEIGHTED_REFINEMENTS)
+    # The kept pass's system at x, factored once more (selecting factors instead would feed
+    # computed pivots to lu_solve, which crashes torch 2.13's compiled C++ wrapper).
+    held = tikhonov_system(A, torch.where(sticky, weighted[:, :, :1], shift)[..., 0])
+    derivative = iterated_tikhonov(held, rhs, refinements=SOLVE_MODE_WEIGHTED_REFINEMENTS)
     dv = (w + U0 @ derivative).squeeze(-1).mT  # (B, K, 3, 6): ∂v⁺/∂x
     F = torch.cat([torch.add(layout.embed, dv, alpha=h), dv], dim=-2)  # (B, K, 6, 6)
     v_step = v_plus[:, :, 0, :, 0]  # (B, K, 3)
