@@ -14,6 +14,7 @@ script or working directory on ``sys.path``) from a temporary directory, and eac
 from __future__ import annotations
 
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -30,6 +31,8 @@ from torchcontact.robots import ROBOT_NAMES
 ROOT = Path(__file__).resolve().parents[1]
 PIP = (sys.executable, "-m", "pip", "--quiet", "--disable-pip-version-check")
 CONSTRAINTS = ("-c", str(ROOT / "constraints.txt"))
+#: The environment for pip: no PYTHONPATH (a checkout on it reads as an installed torchcontact).
+CLEAN_ENV = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"} | {"PYTHONNOUSERSITE": "1"}
 
 
 @pytest.fixture(scope="module")
@@ -56,6 +59,7 @@ def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
             str(dist),
             str(source),
         ],
+        env=CLEAN_ENV,
         check=True,
     )
     (path,) = dist.glob("torchcontact-*.whl")
@@ -68,16 +72,6 @@ def installed(wheel: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     env = tmp_path_factory.mktemp("venv")
     venv.create(env, with_pip=False)
     python = env / "bin" / "python"
-    purelib = subprocess.run(
-        [str(python), "-I", "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
-        capture_output=True,
-        text=True,
-        check=True,
-    ).stdout.strip()
-    dependencies = {sysconfig.get_path("purelib"), sysconfig.get_path("platlib")}
-    (Path(purelib) / "_torchcontact_test_dependencies.pth").write_text(
-        "".join(f"{path}\n" for path in sorted(dependencies))
-    )
     subprocess.run(
         [
             *PIP,
@@ -89,7 +83,20 @@ def installed(wheel: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
             *CONSTRAINTS,
             str(wheel),
         ],
+        env=CLEAN_ENV,
         check=True,
+    )
+    # Only now the dependencies: pip must not take them (or an editable torchcontact among
+    # them) for an installed torchcontact.
+    purelib = subprocess.run(
+        [str(python), "-I", "-c", "import sysconfig; print(sysconfig.get_path('purelib'))"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.strip()
+    dependencies = {sysconfig.get_path("purelib"), sysconfig.get_path("platlib")}
+    (Path(purelib) / "_torchcontact_test_dependencies.pth").write_text(
+        "".join(f"{path}\n" for path in sorted(dependencies))
     )
     return python
 
