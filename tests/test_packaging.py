@@ -1,5 +1,5 @@
 """The wheel holds the whole library: installed outside the repository, it runs the README's
-first example and loads the robots from its own package data.
+first example, loads the robots from its own package data and runs the robots tutorial.
 
 The wheel is installed with ``--no-deps`` into a fresh virtual environment that sees the
 dependencies of the environment running the tests through a ``.pth`` file: those are resolved
@@ -134,8 +134,10 @@ def assert_from_wheel(found: dict, python: Path) -> None:
     assert not any(Path(entry) == ROOT for entry in found["path"] if entry)
 
 
-def test_wheel_holds_the_package_data(wheel: Path) -> None:
+def test_wheel_holds_every_module_and_the_package_data(wheel: Path) -> None:
     names = set(zipfile.ZipFile(wheel).namelist())
+    modules = {p.relative_to(ROOT).as_posix() for p in (ROOT / "torchcontact").rglob("*.py")}
+    assert modules - names == set(), "modules missing from the wheel (a folder without __init__?)"
     assert {f"torchcontact/models/{name}.urdf" for name in ROBOT_NAMES} <= names
     assert "torchcontact/py.typed" in names
     assert not any(name.startswith(("tests/", "models/", "train/")) for name in names)
@@ -167,3 +169,19 @@ def test_robots_load_from_the_installed_wheel(installed: Path, tmp_path: Path) -
     assert_from_wheel(found, installed)
     assert Path(found["models"]).is_relative_to(installed.parents[1])
     assert found["dof"] == 11
+
+
+def test_robots_tutorial_runs_from_the_installed_wheel(installed: Path, tmp_path: Path) -> None:
+    """Tutorial 06 (the one that reads package data) as a script, in fast mode."""
+    (tmp_path / "cwd").mkdir()
+    result = subprocess.run(
+        [str(installed), "-I", str(ROOT / "tutorials" / "06_robots.py")],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path / "cwd",
+        env={"PATH": "/usr/bin:/bin", "MPLBACKEND": "Agg", "HOME": str(tmp_path)}
+        | {"TORCHCONTACT_FAST": "1", "TORCHCONTACT_OUT": str(tmp_path / "out")},
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr
+    assert not any((tmp_path / "cwd").iterdir())
