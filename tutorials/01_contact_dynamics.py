@@ -30,6 +30,7 @@
 # %%
 import math
 import os
+import tempfile
 import time
 from pathlib import Path
 
@@ -41,8 +42,10 @@ from torchcontact.geometry import HalfPlane, Polygon
 from torchcontact.sim import Body, Scene, Simulator, contact_problem, draw_scene
 
 FAST = os.environ.get("TORCHCONTACT_FAST") == "1"
-OUT = Path(os.environ.get("TORCHCONTACT_OUT", "runs/tutorials"))
+# Figures and files go to the folder named by TORCHCONTACT_OUT, else to a new temporary one.
+OUT = Path(os.environ.get("TORCHCONTACT_OUT") or tempfile.mkdtemp(prefix="torchcontact_"))
 OUT.mkdir(parents=True, exist_ok=True)
+print(f"outputs in {OUT}")
 G, H, MU = 9.81, 0.01, 0.4
 
 

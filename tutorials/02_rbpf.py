@@ -26,6 +26,7 @@
 # %%
 import itertools
 import os
+import tempfile
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -45,8 +46,10 @@ from torchcontact.filters import (
 from torchcontact.sim import pushed_box_rollout, pushed_box_scene
 
 FAST = os.environ.get("TORCHCONTACT_FAST") == "1"
-OUT = Path(os.environ.get("TORCHCONTACT_OUT", "runs/tutorials"))
+# Figures and files go to the folder named by TORCHCONTACT_OUT, else to a new temporary one.
+OUT = Path(os.environ.get("TORCHCONTACT_OUT") or tempfile.mkdtemp(prefix="torchcontact_"))
 OUT.mkdir(parents=True, exist_ok=True)
+print(f"outputs in {OUT}")
 torch.manual_seed(0)
 F64 = torch.float64
 

@@ -35,6 +35,7 @@
 # %%
 import math
 import os
+import tempfile
 from dataclasses import replace
 from pathlib import Path
 
@@ -54,8 +55,10 @@ from torchcontact.states import (
 )
 
 FAST = os.environ.get("TORCHCONTACT_FAST") == "1"
-OUT = Path(os.environ.get("TORCHCONTACT_OUT", "runs/tutorials"))
+# Figures and files go to the folder named by TORCHCONTACT_OUT, else to a new temporary one.
+OUT = Path(os.environ.get("TORCHCONTACT_OUT") or tempfile.mkdtemp(prefix="torchcontact_"))
 OUT.mkdir(parents=True, exist_ok=True)
+print(f"outputs in {OUT}")
 torch.set_default_dtype(torch.float64)
 A, B = 0.5, 0.25  # box half extents (m)
 STICK, SLIDE_BACK = 1, 3  # modes: sticking; sliding with friction along −x (moving +x)

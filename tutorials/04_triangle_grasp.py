@@ -29,6 +29,7 @@
 
 # %%
 import os
+import tempfile
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -54,8 +55,10 @@ from torchcontact.sim import draw_scene
 from torchcontact.states import mode_label
 
 FAST = os.environ.get("TORCHCONTACT_FAST") == "1"
-OUT = Path(os.environ.get("TORCHCONTACT_OUT", "runs/tutorials"))
+# Figures and files go to the folder named by TORCHCONTACT_OUT, else to a new temporary one.
+OUT = Path(os.environ.get("TORCHCONTACT_OUT") or tempfile.mkdtemp(prefix="torchcontact_"))
 OUT.mkdir(parents=True, exist_ok=True)
+print(f"outputs in {OUT}")
 torch.manual_seed(0)
 torch.set_num_threads(1)
 

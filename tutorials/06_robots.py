@@ -15,11 +15,11 @@
 # # 06 · Robots: the WAM, the BarrettHand, and contact Jacobians
 #
 # `torchcontact.robots` wraps [pytorch-kinematics](https://github.com/UM-ARM-Lab/pytorch_kinematics)
-# around the robot descriptions in `models/` (written from Barrett's published DH tables and
-# dimensions; the sources are in each URDF's header). A robot gives batched forward kinematics,
-# geometric Jacobians of any point on any link, and **contact Jacobians**: the rows that turn joint
-# velocities into a contact point's velocity along the contact normal and the friction directions,
-# which is how a robot enters a contact problem.
+# around the robot descriptions that ship inside the package, in `torchcontact/models/` (written
+# from Barrett's published DH tables and dimensions; the sources are in each URDF's header). A
+# robot gives batched forward kinematics, geometric Jacobians of any point on any link, and
+# **contact Jacobians**: the rows that turn joint velocities into a contact point's velocity along
+# the contact normal and the friction directions, which is how a robot enters a contact problem.
 #
 # Here we load the 7-DOF WAM with a BarrettHand on its tool plate, draw it, and look at the contact
 # Jacobian of a fingertip.

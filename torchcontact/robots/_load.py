@@ -1,33 +1,36 @@
-"""Load the robot descriptions that ship in the repository's ``models/`` directory."""
+"""Load the robot descriptions that ship inside the package, in ``torchcontact/models/``."""
 
 from __future__ import annotations
 
+from importlib import resources
 from pathlib import Path
 
 from torchcontact.robots._robot import Robot
 
 ROBOT_NAMES = ("wam7", "bhand", "wam7_bhand", "parallel_jaw")
-"""Names accepted by :func:`load`, one per ``models/<name>.urdf``."""
+"""Names accepted by :func:`load`, one per ``torchcontact/models/<name>.urdf``."""
 
 
 def models_dir() -> Path:
-    """The ``models/`` directory at the top of the torchcontact source tree.
+    """The directory of the robot descriptions installed with torchcontact.
+
+    The URDFs are package data (``torchcontact/models/``), located through
+    :mod:`importlib.resources`, so they are found wherever the package is installed.
 
     Returns:
         Its absolute path.
 
     Raises:
-        FileNotFoundError: The directory is missing (torchcontact installed without its source
-            tree).
+        FileNotFoundError: The directory is missing, or the package is not installed as files
+            on disk (imported from a zip archive).
     """
-    path = Path(__file__).resolve().parents[2] / "models"
-    if not path.is_dir():
+    path = resources.files("torchcontact").joinpath("models")
+    if not isinstance(path, Path) or not path.is_dir():
         raise FileNotFoundError(
-            f"torchcontact robot descriptions not found: {path} is not a directory. The models/ "
-            "directory ships with the torchcontact source tree; install it from a checkout in "
-            "editable mode (pip install -e .)."
+            f"torchcontact robot descriptions not found: {path} is not a directory. They ship "
+            "inside the package (torchcontact/models/); reinstall torchcontact with pip."
         )
-    return path
+    return path.resolve()
 
 
 def load(name: str, *, coupled: bool = True) -> Robot:
@@ -42,7 +45,7 @@ def load(name: str, *, coupled: bool = True) -> Robot:
     * ``"parallel_jaw"``: a two-finger parallel-jaw gripper for planar grasp scenes; coupled: one
       coordinate (each finger's distance from the centreline), uncoupled: both fingers independent.
 
-    Sources and dimensions are documented in each ``models/<name>.urdf``.
+    Sources and dimensions are documented in each ``torchcontact/models/<name>.urdf``.
 
     Args:
         name: One of :data:`ROBOT_NAMES`.
@@ -54,7 +57,7 @@ def load(name: str, *, coupled: bool = True) -> Robot:
 
     Raises:
         ValueError: ``name`` is not a known robot or ``coupled`` is not a bool.
-        FileNotFoundError: The ``models/`` directory or the robot's file is missing.
+        FileNotFoundError: The package's ``models/`` directory or the robot's file is missing.
     """
     if not isinstance(name, str) or name not in ROBOT_NAMES:
         raise ValueError(f"name must be one of {list(ROBOT_NAMES)}, got {name!r}")
