@@ -253,14 +253,48 @@ def is_consistent(
         ValueError: ``problem`` or ``solution`` is not one, or their shapes or dtypes differ.
     """
     check_solution(problem, solution)
-    v_next, pn, pt, mode = solution.v_next, solution.pn, solution.pt, solution.mode
     tol = 10 * default_tolerance(problem.dtype) if atol is None else check_positive("atol", atol)
-    velocity_scale, impulse_scale = problem_scales(problem, v_next=v_next, pn=pn, pt=pt)
-    v_tol, p_tol = tol * velocity_scale, tol * impulse_scale
+    v_next, pn, pt, mode = solution.v_next, solution.pn, solution.pt, solution.mode
+    return consistent_with_mode(problem, v_next=v_next, pn=pn, pt=pt, mode=mode, atol=tol)
+
+
+def consistent_with_mode(
+    problem: ContactProblem,
+    *,
+    v_next: Tensor,
+    pn: Tensor,
+    pt: Tensor,
+    mode: Tensor,
+    atol: float,
+    v_free: Tensor | None = None,
+) -> Tensor:
+    """:func:`is_consistent` on arrays, without validation: the one consistency check.
+
+    For code that holds a candidate solution as arrays on its hot path (the simulator's mode
+    iterations, the filters' per-mode linearization), with shapes and dtypes right by
+    construction.
+
+    Args:
+        problem: the contact problem, batch ``*B``.
+        v_next: ``(*B, n)`` end-of-step velocity.
+        pn: ``(*B, K)`` normal impulses.
+        pt: ``(*B, K, D)`` friction impulses.
+        mode: ``(*B, K)`` long contact modes (broadcastable).
+        atol: relative tolerance.
+        v_free: ``(*B, n)`` the contact-free velocity if the caller has it (else computed).
+
+    Returns:
+        ``(*B,)`` bool, ``True`` where the solution is consistent with its modes.
+    """
+    velocity_scale, impulse_scale = problem_scales(
+        problem, v_next=v_next, pn=pn, pt=pt, v_free=v_free
+    )
+    v_tol, p_tol = atol * velocity_scale, atol * impulse_scale
     p_tol_d = p_tol.unsqueeze(-1)
     gap_rate, slip = velocity_terms(problem, v_next)
     friction_total = pt.sum(dim=-1)
-    direction = (mode - SLIDING).clamp(min=0)
+    mu_pn = problem.mu * pn
+    direction = (mode - SLIDING).clamp(min=0).expand(pn.shape)
     slip_d = slip.gather(-1, direction.unsqueeze(-1)).squeeze(-1)
     pt_d = pt.gather(-1, direction.unsqueeze(-1)).squeeze(-1)
 
@@ -269,8 +303,8 @@ def is_consistent(
     separated_ok = no_impulse & (gap_rate >= -v_tol)
     closed = gap_rate.abs() <= v_tol
     sticking_ok = closed & (slip.abs() <= v_tol.unsqueeze(-1)).all(dim=-1)
-    sticking_ok = sticking_ok & (friction_total <= problem.mu * pn + p_tol)
-    sliding_ok = closed & ((friction_total - problem.mu * pn).abs() <= p_tol)
+    sticking_ok = sticking_ok & (friction_total <= mu_pn + p_tol)
+    sliding_ok = closed & ((friction_total - mu_pn).abs() <= p_tol)
     sliding_ok = sliding_ok & ((pt_d - friction_total).abs() <= p_tol)
     sliding_ok = sliding_ok & (slip_d <= v_tol) & (slip_d <= slip.amin(dim=-1) + v_tol)
     per_slot = torch.where(

@@ -53,6 +53,8 @@ from torchcontact.contact import (
     SOLVE_MODE_MIN_LOAD_SHARE,
     SOLVE_MODE_REFINEMENTS,
     SOLVE_MODE_WEIGHTED_REFINEMENTS,
+    ContactProblem,
+    consistent_with_mode,
     iterated_tikhonov,
     tikhonov_system,
 )
@@ -81,9 +83,9 @@ class ModeTable:
         slide: ``(K, W_max)`` float64 ``±μ`` of slots sliding with friction along ``±t``,
             else 0.
         acting: ``(K, S)`` bool, the slot carries an impulse in the mode (mode ≥ 1).
-        separated: ``(K, S)`` bool, mode 0.
         sticking: ``(K, S)`` bool, mode 1.
-        slip_sign: ``(K, S)`` float64 ``-1`` where friction acts along ``−t`` (mode 3), else 1.
+        slide_sign: ``(K, S)`` float64 ``+1`` where the slot slides with friction along
+            ``+t`` (mode 2), ``-1`` along ``−t`` (mode 3), else 0.
     """
 
     modes: Tensor
@@ -92,9 +94,8 @@ class ModeTable:
     sticks: Tensor
     slide: Tensor
     acting: Tensor
-    separated: Tensor
     sticking: Tensor
-    slip_sign: Tensor
+    slide_sign: Tensor
 
 
 def mode_table(layout: SlotLayout, modes: Tensor) -> ModeTable:
@@ -112,9 +113,8 @@ def mode_table(layout: SlotLayout, modes: Tensor) -> ModeTable:
         sticks=(modes == 1).gather(-1, slots),
         slide=(sign * layout.mu).gather(-1, slots),
         acting=acting,
-        separated=modes == 0,
         sticking=modes == 1,
-        slip_sign=1.0 - 2.0 * (modes == 3).to(f64),
+        slide_sign=sign,
     )
 
 
@@ -226,53 +226,39 @@ def linearize_modes(
     f = torch.cat([x[:, None, :3] + h * v_step, v_step], dim=-1)  # (B, K, 6)
     c = f - (F @ x[:, None, :, None]).squeeze(-1)
 
-    # is_consistent at the last point, on every slot (impulses placed back on their slots).
-    v_touch = v_next[:, :, -1, None]  # (B, K, 1, 3, 1)
+    # is_consistent at the last point (the mode's gaps closed), on every slot: the impulses
+    # placed back on their slots, a sliding slot's friction μ pn along its direction.
     impulse = impulses[:, :, -1, :, 0].unflatten(-1, (2, W))  # (B, K, 2, W): normal, tangent
     placed = impulse.new_zeros(B, K, 2, S).scatter(
         -1, keep.unsqueeze(2).expand_as(impulse), impulse
     )
     pn, tangential = placed.unbind(2)
+    friction = torch.where(table.sticking, tangential, table.slide_sign * layout.mu * pn)
+    pt = torch.stack([friction.clamp(min=0.0), (-friction).clamp(min=0.0)], dim=-1)
     phi_all = centre[:, None, :, 0]  # (B, 1, S)
-    phi_all = torch.where(table.acting, phi_all - phi_all.clamp(-gap, gap), phi_all)
-    rows_centre = centre[:, None, :, 1:7].unflatten(-1, (2, 3))  # (B, 1, S, 2, 3)
-    velocity = rows_centre @ v_touch  # (B, K, S, 2, 1)
-    gap_rate = velocity[..., 0, 0] + centre[:, None, :, 7] + phi_all / h  # (B, K, S)
-    slip = velocity[..., 1, 0] + centre[:, None, :, 8]
-    # The scales of problem_scales (is_consistent's): velocities the step starts from or the
-    # impulses cause at the candidate slots, the known terms, penetration recovery; momenta.
-    free = v_free[:, :, 0]  # (B, 1, 3, 1)
-    caused = v_touch[:, :, 0] - free  # (B, K, 3, 1): v⁺ − v_free
-    rates = torch.cat(
-        [
-            (rows_centre @ free.unsqueeze(2)).abs().expand(-1, K, -1, -1, -1),
-            (rows_centre @ caused.unsqueeze(2)).abs(),
-        ],
-        dim=-1,
-    ).amax(dim=(-2, -1))  # (B, K, S)
-    known = centre[:, None, :, 7:9].abs().amax(dim=-1)  # (B, 1, S)
-    per_slot = torch.maximum(torch.maximum(rates, known), (-phi_all / h).clamp(min=0.0))
-    per_slot = torch.where(candidate.unsqueeze(1), per_slot, 0.0)
-    tiny = torch.finfo(torch.float64).tiny
-    v_scale = per_slot.amax(dim=-1, keepdim=True).clamp(min=tiny)  # (B, K, 1)
-    mass = layout.inverse_mass.reciprocal()
-    momenta = torch.cat(
-        [
-            (mass * x[:, 3:]).abs().amax(dim=-1)[:, None].expand(-1, K),
-            (mass * layout.gravity_step).abs().amax().expand(B, K),
-            (mass * caused[..., 0]).abs().amax(dim=-1),
-        ]
-    ).view(3, B, K)
-    p_scale = torch.maximum(momenta.amax(dim=0), placed.abs().flatten(-2).amax(dim=-1))
-    p_scale = p_scale.clamp(min=tiny).unsqueeze(-1)  # (B, K, 1)
-    v_tol = consistency_tolerance * v_scale
-    p_tol = consistency_tolerance * p_scale
-    mu_pn = layout.mu * pn
-    speed = slip.abs()
-    stuck = (speed <= v_tol) & (tangential.abs() <= mu_pn + p_tol)
-    slides = (slip * table.slip_sign + speed <= v_tol) & (mu_pn >= -p_tol)
-    pressed = (
-        (gap_rate.abs() <= v_tol) & (pn >= -p_tol) & torch.where(table.sticking, stuck, slides)
+    rows_centre = centre[:, None, :, 1:7].unflatten(-1, (2, 3))  # (B, 1, S, 2, 3): Jn, Jt
+    known = centre[:, None, :, 7:9]  # (B, 1, S, 2): bn, bt
+    inverse_mass = layout.inverse_mass
+    problem = ContactProblem.unchecked(
+        M=torch.diag(inverse_mass.reciprocal()),
+        v=x[:, None, 3:],
+        f=layout.gravity_step / (h * inverse_mass),
+        Jn=rows_centre[..., 0, :],
+        Jt=torch.stack([rows_centre[..., 1, :], -rows_centre[..., 1, :]], dim=-2),
+        phi=torch.where(table.acting, phi_all - phi_all.clamp(-gap, gap), phi_all),
+        mu=layout.mu,
+        h=h,
+        mask=candidate.unsqueeze(1),
+        bn=known[..., 0],
+        bt=torch.stack([known[..., 1], -known[..., 1]], dim=-1),
     )
-    consistent = torch.where(table.separated, gap_rate >= -v_tol, pressed)
-    return F, c, (consistent | ~candidate.unsqueeze(1)).all(dim=-1)
+    consistent = consistent_with_mode(
+        problem,
+        v_next=v_next[:, :, -1, :, 0],
+        pn=pn,
+        pt=pt,
+        mode=table.modes,
+        atol=consistency_tolerance,
+        v_free=v_free[:, :, 0, :, 0].expand(B, K, 3),
+    )
+    return F, c, consistent
