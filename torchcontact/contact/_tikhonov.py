@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import torch
 from torch import Tensor
@@ -16,10 +17,12 @@ class TikhonovSystem:
     to the solution when ``A`` is nonsingular and, when ``A`` is singular but the system
     consistent, to the solution of least ``(x − x_0)ᵀ S (x − x_0)`` (the error along the null
     space never moves from the start, and shrinks by ``s / (λ + s)`` per iteration along an
-    eigenvalue ``λ``). Each iteration is the affine map ``x ↦ y + R x`` with
-    ``y = (A + S)⁻¹ b`` and ``R = (A + S)⁻¹ S``; ``R`` comes from one LU solve of ``A + S``
-    (with ``S`` as the right-hand side, never an inverse), after which every iteration and
-    every further right-hand side is a matrix product.
+    eigenvalue ``λ``). ``A + S`` is LU-factored once; every iteration, for every right-hand
+    side, is one pair of triangular solves with those factors (never an inverse). Where the
+    calls cost more than the arithmetic (small batches, compiled code), the iteration matrix
+    ``R = (A + S)⁻¹ S`` can be formed once by one more solve with ``S`` as the right-hand
+    side, after which an iteration is the affine map ``x ↦ y + R x``, a matrix product;
+    on large batches of small systems the triangular solves are cheaper than the products.
 
     References:
         A. N. Tikhonov and V. Y. Arsenin, "Solutions of Ill-Posed Problems", Winston, 1977
@@ -29,28 +32,31 @@ class TikhonovSystem:
     Attributes:
         LU: ``(*B, m, m)`` LU factors of ``A + S`` (``torch.linalg.lu_factor``).
         pivots: ``(*B, m)`` their pivots.
-        R: ``(*B, m, m)`` the iteration matrix ``(A + S)⁻¹ S``.
+        shift: ``(*B, m, 1)`` the diagonal ``s`` of ``S``, as a column.
+        R: ``(*B, m, m)`` the iteration matrix, or ``None`` where the iterations solve.
     """
 
     LU: Tensor
     pivots: Tensor
-    R: Tensor
+    shift: Tensor
+    R: Tensor | None
 
 
-def tikhonov_system(A: Tensor, shift: Tensor) -> TikhonovSystem:
-    """Factor ``A + diag(shift)`` and form the iteration matrix.
+def tikhonov_system(A: Tensor, shift: Tensor, *, products: bool = False) -> TikhonovSystem:
+    """Factor ``A + diag(shift)``.
 
     Args:
         A: ``(*B, m, m)`` system matrices.
         shift: ``(*B, m)`` positive diagonal ``s`` of the regularisation ``S``.
+        products: also form the iteration matrix ``R``, so that iterations are products.
 
     Returns:
         The :class:`TikhonovSystem`.
     """
     regularised = A + torch.diag_embed(shift)
     LU, pivots = torch.linalg.lu_factor(regularised)
-    R = torch.linalg.lu_solve(LU, pivots, torch.diag_embed(shift))
-    return TikhonovSystem(LU=LU, pivots=pivots, R=R)
+    R = torch.linalg.lu_solve(LU, pivots, torch.diag_embed(shift)) if products else None
+    return TikhonovSystem(LU=LU, pivots=pivots, shift=shift.unsqueeze(-1), R=R)
 
 
 def iterated_tikhonov(
@@ -70,8 +76,19 @@ def iterated_tikhonov(
     Returns:
         ``(*B'', m, r)`` the iterate ``x_refinements``.
     """
-    y: Tensor = torch.linalg.lu_solve(system.LU, system.pivots, b)
-    x = y if start is None else y + system.R @ start.detach()
+    LU, pivots, shift, R = system.LU, system.pivots, system.shift, system.R
+    if R is not None:
+        y: Tensor = torch.linalg.lu_solve(LU, pivots, b)
+        x = y if start is None else y + R @ start.detach()
+        for _ in range(refinements - 1):
+            x = y + R @ x
+        return x
+    x = cast(
+        Tensor,
+        torch.linalg.lu_solve(
+            LU, pivots, b if start is None else torch.addcmul(b, shift, start.detach())
+        ),
+    )
     for _ in range(refinements - 1):
-        x = y + system.R @ x
+        x = torch.linalg.lu_solve(LU, pivots, torch.addcmul(b, shift, x))
     return x

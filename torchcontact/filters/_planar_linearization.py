@@ -192,7 +192,8 @@ def linearize_modes(
     scale = system.diagonal(dim1=-2, dim2=-1).abs().amax(dim=-1, keepdim=True).clamp_min(1.0)
     shift = (_SQRT_EPS * scale).unsqueeze(-1)  # (B, K, 1, 1, 1)
     A = system + torch.diag_embed(off)
-    first = tikhonov_system(A, shift[..., 0].expand_as(off))
+    # Few systems, many iterations and right-hand sides: iterations as products.
+    first = tikhonov_system(A, shift[..., 0].expand_as(off), products=True)
     impulses = iterated_tikhonov(first, b, refinements=SOLVE_MODE_REFINEMENTS)
     # Redundant sticking rows leave the impulse split free: solve_mode prefers normal support
     # and shares friction in proportion to the normal loads (kept for modes that stick).
@@ -200,7 +201,7 @@ def linearize_modes(
     share = load.amax(dim=-2, keepdim=True).clamp_min(torch.finfo(torch.float64).eps)
     friction = SOLVE_MODE_FRICTION_COST * share / (load + SOLVE_MODE_MIN_LOAD_SHARE * share)
     weighted = torch.cat([shift.expand_as(load), shift * friction], dim=-2)  # (..., 2W, 1)
-    second = tikhonov_system(A, weighted[..., 0])
+    second = tikhonov_system(A, weighted[..., 0], products=True)
     split = iterated_tikhonov(second, b, refinements=SOLVE_MODE_WEIGHTED_REFINEMENTS)
     sticky = sticks.any(dim=-1)[:, :, None, None, None]
     impulses = torch.where(sticky, split, impulses)
@@ -218,8 +219,12 @@ def linearize_modes(
     rhs = (C0 @ w + torch.nn.functional.pad(moving, (0, 0, 0, 0, 0, 3))).neg()  # (B, K, 6, ·)
     # The kept pass's system at x, factored once more (selecting factors instead would feed
     # computed pivots to lu_solve, which crashes torch 2.13's compiled C++ wrapper).
-    held = tikhonov_system(A, torch.where(sticky, weighted[:, :, :1], shift)[..., 0])
-    derivative = iterated_tikhonov(held, rhs, refinements=SOLVE_MODE_WEIGHTED_REFINEMENTS)
+    held = tikhonov_system(A, torch.where(sticky, weighted[:, :, :1], shift)[..., 0], products=True)
+    # The six directions as the columns of one right-hand side (B, K, 1, 2W, 6).
+    columns = iterated_tikhonov(
+        held, rhs.squeeze(-1).mT.unsqueeze(2), refinements=SOLVE_MODE_WEIGHTED_REFINEMENTS
+    )
+    derivative = columns.squeeze(2).mT.unsqueeze(-1)  # (B, K, 6, 2W, 1)
     dv = (w + U0 @ derivative).squeeze(-1).mT  # (B, K, 3, 6): ∂v⁺/∂x
     F = torch.cat([torch.add(layout.embed, dv, alpha=h), dv], dim=-2)  # (B, K, 6, 6)
     v_step = v_plus[:, :, 0, :, 0]  # (B, K, 3)
