@@ -6,7 +6,14 @@ import pytest
 import torch
 
 from tests.contact.boxes import box_problem, resting_state
-from torchcontact.contact import SLIDING, STICKING, ContactProblem, solve, solve_mode
+from torchcontact.contact import (
+    SLIDING,
+    STICKING,
+    ContactProblem,
+    solve,
+    solve_mode,
+    solve_mode_unchecked,
+)
 
 
 def _pushed_box() -> ContactProblem:
@@ -150,3 +157,25 @@ def test_initial_impulses_keep_a_known_split_of_redundant_contacts() -> None:
     # Without the anchor, friction is shared in proportion to the normal load.
     share = own.pt[:, 0] / own.pn
     torch.testing.assert_close(share[0], share[1], atol=1e-9, rtol=0)
+
+
+@pytest.mark.parametrize("sync_free", [False, True])
+def test_unchecked_solve_reproduces_lemke_at_its_modes(sync_free: bool) -> None:
+    """``solve_mode_unchecked`` (either way of running the friction split) at Lemke's modes
+    returns Lemke's end velocity: unique, so 1e-9 of the velocity scale whatever the split of
+    redundant corners; the batch mixes sticking, sliding and separating boxes."""
+    gen = torch.Generator().manual_seed(11)
+    q, v = resting_state((24,))
+    v = v + 0.8 * torch.randn(24, 3, generator=gen, dtype=torch.float64)
+    v[:, 1] = v[:, 1].clamp(max=0.0)
+    problem = box_problem(
+        q=q, v=v, mu=0.4, force=3.0 * torch.randn(24, 2, generator=gen, dtype=torch.float64)
+    )
+    exact = solve(problem, "lemke")
+    assert bool(exact.status.converged.all())
+    modes = torch.bincount(exact.mode.flatten(), minlength=4)
+    assert bool((modes > 0).all()), modes  # every mode occurs in the batch
+    unchecked = solve_mode_unchecked(problem, exact.mode, sync_free=sync_free)
+    scale = float(exact.v_next.abs().max())
+    torch.testing.assert_close(unchecked.v_next, exact.v_next, atol=1e-9 * scale, rtol=0)
+    assert bool(unchecked.status.converged.all())

@@ -29,6 +29,7 @@ from torchcontact.contact._mode_solve import (
     SOLVE_MODE_REFINEMENTS,
     SOLVE_MODE_WEIGHTED_REFINEMENTS,
     solve_mode,
+    solve_mode_unchecked,
 )
 from torchcontact.contact._pgs import project_capped_simplex, solve_pgs
 from torchcontact.contact._problem import ContactProblem
@@ -67,6 +68,7 @@ __all__ = [
     "solve_active_set",
     "solve_lemke",
     "solve_mode",
+    "solve_mode_unchecked",
     "solve_pgs",
     "solve_qp",
     "tikhonov_system",

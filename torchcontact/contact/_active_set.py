@@ -9,11 +9,11 @@ from torchcontact.contact._lcp import (
     SEPARATED,
     SLIDING,
     STICKING,
+    consistent_with_mode,
     default_tolerance,
-    is_consistent,
     velocity_terms,
 )
-from torchcontact.contact._mode_solve import solve_mode, validate_mode
+from torchcontact.contact._mode_solve import solve_mode_unchecked, validate_mode
 from torchcontact.contact._problem import ContactProblem
 from torchcontact.contact._solution import Solution, SolveStatus
 
@@ -72,8 +72,20 @@ def solve_active_set(problem: ContactProblem, mode: Tensor, *, max_iterations: i
     mode = validate_mode(problem, mode)
     batch = problem.batch_shape
     flat = problem.flatten()
-    solution = solve_mode(flat, mode.reshape(flat.slot_mask.shape))
-    done = is_consistent(flat, solution) & solution.status.converged
+    tolerance = 10 * default_tolerance(problem.dtype)
+
+    def consistent(problem: ContactProblem, solution: Solution) -> Tensor:
+        return consistent_with_mode(
+            problem,
+            v_next=solution.v_next,
+            pn=solution.pn,
+            pt=solution.pt,
+            mode=solution.mode,
+            atol=tolerance,
+        )
+
+    solution = solve_mode_unchecked(flat, mode.reshape(flat.slot_mask.shape))
+    done = consistent(flat, solution) & solution.status.converged
     iterations = torch.ones(done.shape, dtype=torch.long, device=problem.device)
     for _ in range(max_iterations):
         pending = torch.nonzero(~done).squeeze(-1)
@@ -81,8 +93,8 @@ def solve_active_set(problem: ContactProblem, mode: Tensor, *, max_iterations: i
             break
         subset = flat[pending]
         previous = solution.map_tensors(lambda t, index=pending: t[index])
-        candidate = solve_mode(subset, update_mode(subset, previous))
-        solved = is_consistent(subset, candidate) & candidate.status.converged
+        candidate = solve_mode_unchecked(subset, update_mode(subset, previous))
+        solved = consistent(subset, candidate) & candidate.status.converged
         solution = solution.scatter(pending, candidate)
         done = done.index_put((pending,), solved)
         iterations = iterations.index_add(0, pending, torch.ones_like(pending))

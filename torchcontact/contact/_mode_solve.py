@@ -105,6 +105,29 @@ def solve_mode(
             ("initial_impulses[1]", initial_impulses[1], problem.b_tangent.shape[-2:]),
         ):
             check_tensor(name, value, event_shape=event, like=problem.M)
+    return solve_mode_unchecked(problem, mode, initial_impulses=initial_impulses)
+
+
+def solve_mode_unchecked(
+    problem: ContactProblem,
+    mode: Tensor,
+    *,
+    initial_impulses: tuple[Tensor, Tensor] | None = None,
+    sync_free: bool = False,
+) -> Solution:
+    """:func:`solve_mode` without validating ``mode`` and ``initial_impulses``.
+
+    For hot paths whose modes are valid by construction (a simulator's mode iterations).
+
+    Args:
+        problem: the contact problem, batch ``*B``.
+        mode: ``(*B, K)`` long modes in ``[0, 2 + D)``.
+        initial_impulses: as for :func:`solve_mode`.
+        sync_free: never synchronise with the host (as :func:`torch.compile` wants it): the
+            weighted friction split runs on every problem of the batch and is kept where the
+            problem has a sticking slot, instead of running on those problems alone. The
+            results are the same.
+    """
     mask = problem.slot_mask
     mode = torch.where(mask, mode, torch.zeros_like(mode))
     batch, n = problem.batch_shape, problem.num_dofs
@@ -147,7 +170,7 @@ def solve_mode(
     else:
         x = _iterated_tikhonov(A, b, torch.ones_like(b), refinements=SOLVE_MODE_REFINEMENTS)
     if initial_impulses is None and K:
-        x = _split_friction(A, b, x, sticking.any(dim=-1), K=K, r=r)
+        x = _split_friction(A, b, x, sticking.any(dim=-1), K=K, r=r, sync_free=sync_free)
 
     v_next = v_free + (Minv_GT @ x.unsqueeze(-1)).squeeze(-1)
     pn = x[..., :K]
@@ -173,7 +196,9 @@ def solve_mode(
     return Solution(v_next=v_next, pn=pn, pt=pt, mode=mode, status=status)
 
 
-def _split_friction(A: Tensor, b: Tensor, x: Tensor, sticks: Tensor, *, K: int, r: int) -> Tensor:
+def _split_friction(
+    A: Tensor, b: Tensor, x: Tensor, sticks: Tensor, *, K: int, r: int, sync_free: bool
+) -> Tensor:
     """Re-solve the problems with sticking slots with weights that split friction by load.
 
     Redundant sticking rows leave the split of the impulses free. Prefer normal support over
@@ -188,16 +213,18 @@ def _split_friction(A: Tensor, b: Tensor, x: Tensor, sticks: Tensor, *, K: int, 
         sticks: ``(*B,)`` bool, the problem has a sticking slot.
         K: number of slots.
         r: tangent dimension.
+        sync_free: solve every problem again and keep the answers of those that stick (no
+            host synchronisation).
 
     Returns:
         ``(*B, m)``: ``x`` with the problems that stick solved again.
     """
-    if not bool(sticks.any()):
+    if not sync_free and not bool(sticks.any()):
         return x
-    every = bool(sticks.all())
+    every = sync_free or bool(sticks.all())
     m = x.shape[-1]
-    index = torch.nonzero(sticks.reshape(-1)).squeeze(-1)
-    if not every:
+    index = torch.nonzero(sticks.reshape(-1)).squeeze(-1) if not every else None
+    if index is not None:
         A, b, chosen = A.reshape(-1, m, m)[index], b.reshape(-1, m)[index], x.reshape(-1, m)[index]
     else:
         chosen = x
@@ -208,7 +235,9 @@ def _split_friction(A: Tensor, b: Tensor, x: Tensor, sticks: Tensor, *, K: int, 
     tangent_weight = SOLVE_MODE_FRICTION_COST * share / (load + SOLVE_MODE_MIN_LOAD_SHARE * share)
     weights = torch.cat([torch.ones_like(load), tangent_weight.repeat_interleave(r, dim=-1)], -1)
     split = _iterated_tikhonov(A, b, weights, refinements=SOLVE_MODE_WEIGHTED_REFINEMENTS)
-    if every:
+    if sync_free:
+        return torch.where(sticks.unsqueeze(-1), split, x)
+    if index is None:
         return split
     return x.reshape(-1, m).index_put((index,), split).reshape(x.shape)
 
