@@ -160,15 +160,18 @@ def solve_mode_unchecked(
     A = torch.where(both, C @ Minv_GT, torch.zeros((), dtype=problem.dtype))
     A = A + torch.diag_embed((~rows_active).to(problem.dtype))
     b = torch.where(rows_active, rhs, torch.zeros((), dtype=problem.dtype))
-    if initial_impulses is not None:
-        # Stay at the given solution's impulse split: the iteration's fixed points are the
-        # solutions, so it returns the one nearest the start, and differentiates along it.
-        start = _impulse_coordinates(Jt, initial_impulses, r, rows_active)
-        x = _iterated_tikhonov(
-            A, b, torch.ones_like(b), refinements=SOLVE_MODE_REFINEMENTS, start=start
-        )
-    else:
-        x = _iterated_tikhonov(A, b, torch.ones_like(b), refinements=SOLVE_MODE_REFINEMENTS)
+    # With initial impulses the iteration stays at their split: its fixed points are the
+    # solutions, so it returns the one nearest the start, and differentiates along it.
+    x = _iterated_tikhonov(
+        A,
+        b,
+        torch.ones_like(b),
+        refinements=SOLVE_MODE_REFINEMENTS,
+        start=None
+        if initial_impulses is None
+        else _impulse_coordinates(Jt, initial_impulses, r, rows_active),
+        sync_free=sync_free,
+    )
     if initial_impulses is None and K:
         x = _split_friction(A, b, x, sticking.any(dim=-1), K=K, r=r, sync_free=sync_free)
 
@@ -234,7 +237,9 @@ def _split_friction(
     share = load.amax(dim=-1, keepdim=True).clamp_min(torch.finfo(x.dtype).eps)
     tangent_weight = SOLVE_MODE_FRICTION_COST * share / (load + SOLVE_MODE_MIN_LOAD_SHARE * share)
     weights = torch.cat([torch.ones_like(load), tangent_weight.repeat_interleave(r, dim=-1)], -1)
-    split = _iterated_tikhonov(A, b, weights, refinements=SOLVE_MODE_WEIGHTED_REFINEMENTS)
+    split = _iterated_tikhonov(
+        A, b, weights, refinements=SOLVE_MODE_WEIGHTED_REFINEMENTS, sync_free=sync_free
+    )
     if sync_free:
         return torch.where(sticks.unsqueeze(-1), split, x)
     if index is None:
@@ -248,7 +253,13 @@ def _largest(values: Tensor) -> Tensor:
 
 
 def _iterated_tikhonov(
-    A: Tensor, b: Tensor, weights: Tensor, *, refinements: int, start: Tensor | None = None
+    A: Tensor,
+    b: Tensor,
+    weights: Tensor,
+    *,
+    refinements: int,
+    start: Tensor | None = None,
+    sync_free: bool = False,
 ) -> Tensor:
     """Solve ``A x = b`` (batched, possibly singular but consistent) by iterated Tikhonov.
 
@@ -261,6 +272,8 @@ def _iterated_tikhonov(
         weights: ``(*B, m)`` positive regularisation weights.
         refinements: number of iterations.
         start: ``(*B, m)`` starting point ``x_0`` (treated as a constant), default zeros.
+        sync_free: run every iteration (no host synchronisation) instead of stopping at an
+            exact fixed point.
 
     Returns:
         ``(*B, m)``: the solution when ``A`` is nonsingular; when singular and consistent, the
@@ -277,6 +290,7 @@ def _iterated_tikhonov(
         b.unsqueeze(-1),
         refinements=refinements,
         start=None if start is None else start.unsqueeze(-1),
+        stop_at_fixed_point=not sync_free,
     )
     return x.squeeze(-1)
 

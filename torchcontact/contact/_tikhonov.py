@@ -60,7 +60,12 @@ def tikhonov_system(A: Tensor, shift: Tensor, *, products: bool = False) -> Tikh
 
 
 def iterated_tikhonov(
-    system: TikhonovSystem, b: Tensor, *, refinements: int, start: Tensor | None = None
+    system: TikhonovSystem,
+    b: Tensor,
+    *,
+    refinements: int,
+    start: Tensor | None = None,
+    stop_at_fixed_point: bool = False,
 ) -> Tensor:
     """Run ``refinements`` iterations of :class:`TikhonovSystem` from ``start``.
 
@@ -72,6 +77,10 @@ def iterated_tikhonov(
         b: ``(*B', m, r)`` right-hand sides as columns (``*B'`` broadcasts against ``*B``).
         refinements: number of iterations, ``>= 1``.
         start: ``(*B', m, r)`` starting point ``x_0`` (a constant: detached), default zeros.
+        stop_at_fixed_point: stop as soon as an iteration returns its input exactly (every
+            later one would too, so the result is the same) at the price of one host
+            synchronisation per iteration; only where no gradient is recorded (the
+            derivative's iterates converge on their own).
 
     Returns:
         ``(*B'', m, r)`` the iterate ``x_refinements``.
@@ -89,6 +98,11 @@ def iterated_tikhonov(
             LU, pivots, b if start is None else torch.addcmul(b, shift, start.detach())
         ),
     )
+    stop = stop_at_fixed_point and not (
+        torch.is_grad_enabled() and (b.requires_grad or LU.requires_grad)
+    )
     for _ in range(refinements - 1):
-        x = torch.linalg.lu_solve(LU, pivots, torch.addcmul(b, shift, x))
+        previous, x = x, torch.linalg.lu_solve(LU, pivots, torch.addcmul(b, shift, x))
+        if stop and torch.equal(x, previous):
+            break
     return x
