@@ -103,6 +103,6 @@ def iterated_tikhonov(
     )
     for _ in range(refinements - 1):
         previous, x = x, torch.linalg.lu_solve(LU, pivots, torch.addcmul(b, shift, x))
-        if stop and torch.equal(x, previous):
+        if stop and bool((x == previous).all()):
             break
     return x
