@@ -362,7 +362,7 @@ def bench_rbpf_contact() -> tuple[list[dict[str, Any]], dict[str, Any]]:
             modes=table,
             Q=torch.diag(torch.tensor([1e-6] * 3 + [1e-4] * 3, dtype=dtype)),
             R=torch.diag(sigma**2).to(dtype),
-            transition=empirical_transition(ids.T, K, smoothing=0.1, dtype=dtype),
+            transition=empirical_transition(ids, K, smoothing=0.1, dtype=dtype),
             initial=torch.full((K,), 1.0 / K, dtype=dtype),
         )
         x0 = torch.tensor([0.0, 0.05, 0.0, 0.0, 0.0, 0.0], dtype=dtype)

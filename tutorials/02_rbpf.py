@@ -200,7 +200,7 @@ contact_model = PlanarContactModel(
     modes=table,
     Q=torch.diag(torch.tensor([1e-6] * 3 + [1e-4] * 3, dtype=F64)),
     R=torch.diag(sigma**2),
-    transition=empirical_transition(ids.T, K, smoothing=0.1),
+    transition=empirical_transition(ids, K, smoothing=0.1),
     initial=torch.full((K,), 1.0 / K, dtype=F64),
 )
 truth, controls = pushed_box_rollout(scene, batch=1, steps=steps, seed=1)

@@ -12,7 +12,16 @@ import pytest
 import torch
 
 from tests.contact.boxes import box_problem, incline_gravity, resting_state
-from torchcontact.contact import SEPARATED, SLIDING, STICKING, is_consistent, solve, solve_mode
+from torchcontact.contact import (
+    SEPARATED,
+    SLIDING,
+    STICKING,
+    friction_direction,
+    is_consistent,
+    is_sliding,
+    solve,
+    solve_mode,
+)
 
 G = 9.81
 MASS = 2.0
@@ -159,3 +168,21 @@ def test_pgs_matches_closed_form_resting_and_sliding() -> None:
     assert bool(solution.status.converged.all())
     assert solution.v_next[0].abs().max().item() < 1e-8
     assert solution.v_next[1, 0].item() == pytest.approx(0.5 - 0.4 * G * H, abs=1e-8)
+
+
+def test_mode_helpers_name_the_friction_direction_against_the_slip() -> None:
+    """``is_sliding`` covers every sliding direction, and ``friction_direction`` names the
+    direction that carries friction: the slip along it is negative (the block slides +x, its
+    friction acts along −x)."""
+    modes = torch.tensor([SEPARATED, STICKING, SLIDING, SLIDING + 1])
+    assert is_sliding(modes).tolist() == [False, False, True, True]
+    assert friction_direction(modes).tolist() == [-1, -1, 0, 1]
+    q, v = resting_state()
+    v[0] = 0.5
+    problem = box_problem(q=q, v=v, mu=0.4, h=H)
+    solution = _solve_checked(problem, "lemke")
+    direction = friction_direction(solution.mode)
+    assert bool(is_sliding(solution.mode).all())
+    rows = problem.Jt[torch.arange(2), direction]  # (2, n): each corner's friction row
+    slip = rows @ solution.v_next
+    assert bool((slip < -1e-3).all()), slip

@@ -149,7 +149,7 @@ def test_compiled_contact_model_equals_eager(monkeypatch: pytest.MonkeyPatch) ->
     scene, train, _ = _pushed_box(8, 30, seed=0)
     table, ids, _ = collect_modes(train.mode)
     K = len(table)
-    fields = {**_noise(K), "transition": empirical_transition(ids.T, K, smoothing=0.1)}
+    fields = {**_noise(K), "transition": empirical_transition(ids, K, smoothing=0.1)}
     eager_model = PlanarContactModel(scene=scene, modes=table, **fields)
     _, truth, controls = _pushed_box(1, steps, seed=1)
     prior = Gaussian(

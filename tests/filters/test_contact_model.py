@@ -5,6 +5,7 @@ count, and the filter tracking a pushed box better than its camera."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass, replace
 
@@ -371,7 +372,8 @@ def test_step_with_the_true_mode_reproduces_the_simulator() -> None:
 
 
 def test_collect_modes_and_empirical_transition_match_counting() -> None:
-    modes = torch.tensor([[[0, 1], [2, 1], [0, 1]], [[2, 1], [2, 1], [3, 0]]])  # (B=2, T=3, S)
+    by_run = torch.tensor([[[0, 1], [2, 1], [0, 1]], [[2, 1], [2, 1], [3, 0]]])  # (B=2, T=3, S)
+    modes = by_run.transpose(0, 1)  # time first, as Rollout.mode
     table, ids, counts = collect_modes(modes)
     assert table.tolist() == [[2, 1], [0, 1], [3, 0]]
     assert counts.tolist() == [3, 2, 1]
@@ -380,6 +382,32 @@ def test_collect_modes_and_empirical_transition_match_counting() -> None:
     # transitions: (1→0), (0→1), (0→0), (0→2)
     counts_ij = torch.tensor([[1, 1, 1], [1, 0, 0], [0, 0, 0]], dtype=F64) + 0.5
     torch.testing.assert_close(P, counts_ij / counts_ij.sum(-1, keepdim=True))
+
+
+def test_from_rollout_counts_the_rollouts_modes() -> None:
+    """``PlanarContactModel.from_rollout``: the table holds every per-slot mode vector of the
+    rollouts, and the first mode's distribution and the transition are the smoothed counts,
+    tallied here one step and one run at a time."""
+    scene, rollout, _ = _pushed_box(4, 12, seed=2)
+    noise = _noise(1)
+    model = PlanarContactModel.from_rollout(
+        scene, rollout, Q=noise["Q"], R=noise["R"], smoothing=0.5, inconsistency_penalty=3.0
+    )
+    rows = [tuple(row) for row in model.modes.tolist()]
+    K = len(rows)
+    T, B = rollout.mode.shape[:2]
+    first = torch.full((K,), 0.5, dtype=F64)
+    pairs = torch.full((K, K), 0.5, dtype=F64)
+    for b in range(B):
+        ids = [rows.index(tuple(rollout.mode[t, b].tolist())) for t in range(T)]
+        first[ids[0]] += 1.0
+        for i, j in itertools.pairwise(ids):
+            pairs[i, j] += 1.0
+    torch.testing.assert_close(model.initial, first / first.sum())
+    torch.testing.assert_close(model.transition, pairs / pairs.sum(-1, keepdim=True))
+    assert model.inconsistency_penalty == 3.0
+    with pytest.raises(ValueError, match="rollout"):
+        PlanarContactModel.from_rollout(scene, rollout.mode, Q=noise["Q"], R=noise["R"])
 
 
 def _two_sensors() -> TactileArray:
@@ -576,7 +604,7 @@ def test_rbpf_tracks_a_pushed_box_better_than_its_camera() -> None:
     model = PlanarContactModel(
         scene=scene,
         modes=table,
-        **{**_noise(K), "transition": empirical_transition(ids.T, K, smoothing=0.1)},
+        **{**_noise(K), "transition": empirical_transition(ids, K, smoothing=0.1)},
     )
     rbpf = RBPF(model, 100, proposal="all_modes")
     prior = Gaussian(

@@ -11,6 +11,8 @@ from torchcontact.contact._lcp import (
     STICKING,
     consistent_with_mode,
     default_tolerance,
+    friction_direction,
+    is_sliding,
     velocity_terms,
 )
 from torchcontact.contact._mode_solve import solve_mode_unchecked, validate_mode
@@ -39,13 +41,13 @@ def update_mode(problem: ContactProblem, solution: Solution) -> Tensor:
     mode, pn, pt = solution.mode, solution.pn, solution.pt
     scale_v = 1.0 + gap_rate.abs().amax(dim=-1, keepdim=True)
     scale_p = 1.0 + pn.abs().amax(dim=-1, keepdim=True)
-    direction = (mode - SLIDING).clamp(min=0)
+    direction = friction_direction(mode).clamp(min=0)
     slip_d = slip.gather(-1, direction.unsqueeze(-1)).squeeze(-1)
 
     penetrates = (mode == SEPARATED) & (gap_rate < -tol * scale_v)
     pulls = (mode >= STICKING) & (pn < -tol * scale_p)
     outside_cone = (mode == STICKING) & (pt.sum(-1) > problem.mu * pn + tol * scale_p)
-    reverses = (mode >= SLIDING) & (slip_d > tol * scale_v)
+    reverses = is_sliding(mode) & (slip_d > tol * scale_v)
     updated = torch.where(penetrates, STICKING, mode)
     updated = torch.where(outside_cone, SLIDING + pt.argmax(dim=-1), updated)
     updated = torch.where(reverses, STICKING, updated)

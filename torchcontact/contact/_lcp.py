@@ -13,8 +13,23 @@ from torchcontact.contact._solution import Solution
 SEPARATED = 0
 #: Mode of a slot whose contact point does not slide.
 STICKING = 1
-#: Mode ``SLIDING + d``: the slot slides with its friction impulse along direction ``d``.
+#: Mode ``SLIDING + d``: the slot slides with its friction impulse along direction ``d``
+#: (every mode ``>= SLIDING`` slides: test with :func:`is_sliding`, not ``== SLIDING``).
 SLIDING = 2
+
+
+def is_sliding(mode: Tensor) -> Tensor:
+    """``mode``'s slots that slide, in any direction (``mode >= SLIDING``), as bool."""
+    return mode >= SLIDING
+
+
+def friction_direction(mode: Tensor) -> Tensor:
+    """The friction direction ``d`` of sliding slots (mode ``SLIDING + d``), ``-1`` elsewhere.
+
+    The friction impulse acts along direction ``d``, against the slip: a planar slot in mode
+    ``SLIDING + 1`` has its friction along ``−t`` and slides along ``+t``.
+    """
+    return torch.where(is_sliding(mode), mode - SLIDING, -1)
 
 
 def default_tolerance(dtype: torch.dtype) -> float:
@@ -294,7 +309,7 @@ def consistent_with_mode(
     gap_rate, slip = velocity_terms(problem, v_next)
     friction_total = pt.sum(dim=-1)
     mu_pn = problem.mu * pn
-    direction = (mode - SLIDING).clamp(min=0).expand(pn.shape)
+    direction = friction_direction(mode).clamp(min=0).expand(pn.shape)
     slip_d = slip.gather(-1, direction.unsqueeze(-1)).squeeze(-1)
     pt_d = pt.gather(-1, direction.unsqueeze(-1)).squeeze(-1)
 

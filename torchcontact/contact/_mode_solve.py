@@ -10,6 +10,8 @@ from torchcontact.contact._lcp import (
     SLIDING,
     STICKING,
     default_tolerance,
+    friction_direction,
+    is_sliding,
     lcp_residual,
 )
 from torchcontact.contact._problem import ContactProblem
@@ -136,8 +138,8 @@ def solve_mode_unchecked(
 
     active = mode >= STICKING
     sticking = mode == STICKING
-    sliding = mode >= SLIDING
-    direction = (mode - SLIDING).clamp(min=0)
+    sliding = is_sliding(mode)
+    direction = friction_direction(mode).clamp(min=0)
     Jt_d = Jt.gather(-2, direction[..., None, None].expand(*batch, K, 1, n)).squeeze(-2)
     slide_mu = torch.where(sliding, mu, torch.zeros_like(mu))
     G_normal = Jn + slide_mu.unsqueeze(-1) * Jt_d

@@ -301,7 +301,7 @@ def grasp_trials(settings: TriangleGrasp) -> GraspTrials:
     """Training rollouts (mode table, transition), evaluation trials and their measurements."""
     _, train, _, _ = simulate_grasps(settings, settings.train_trials, seed=10_000 + settings.seed)
     table, train_ids, _ = collect_modes(train.mode)
-    transition = empirical_transition(train_ids.T.contiguous(), table.shape[0], smoothing=0.1)
+    transition = empirical_transition(train_ids, table.shape[0], smoothing=0.1)
     scene, truth, controls, _ = simulate_grasps(settings, settings.trials, seed=settings.seed)
     T, B = settings.steps, settings.trials
     gen = torch.Generator().manual_seed(settings.seed + 1)

@@ -17,7 +17,7 @@ from torchcontact.filters._planar_linearization import ModeTable, linearize_mode
 from torchcontact.filters._planar_slots import SlotLayout, slot_layout
 from torchcontact.filters._rbpf_belief import RBPFBelief
 from torchcontact.filters._switching import LinearSwitchingModel, ModeDynamics
-from torchcontact.sim import Scene, SceneState, contact_problem
+from torchcontact.sim import Rollout, Scene, SceneState, contact_problem
 from torchcontact.states import TactileArray, object_contacts
 
 STATE_DIM = 6  # (x, y, θ, vx, vy, ω)
@@ -211,6 +211,52 @@ class PlanarContactModel:
 
     # ------------------------------------------------------------------------------------------
     # the SwitchingModel protocol
+
+    @classmethod
+    def from_rollout(
+        cls,
+        scene: Scene,
+        rollout: Rollout,
+        *,
+        Q: Tensor,
+        R: Tensor,
+        smoothing: float = 0.1,
+        **options: Any,
+    ) -> PlanarContactModel:
+        """The model of the modes that simulated rollouts of ``scene`` visit.
+
+        The mode table is :func:`collect_modes` of ``rollout.mode``, the transition
+        :func:`empirical_transition` of its mode ids, and the first mode's distribution the
+        ids' frequencies at the first step, with the same additive ``smoothing``.
+
+        Args:
+            scene: the scene (exactly one dynamic body).
+            rollout: rollouts of ``scene``, ``rollout.mode`` of shape ``(T, *B, S)``.
+            Q: ``(6, 6)`` process noise covariance (or ``(K, 6, 6)`` when the number of modes
+                is known).
+            R: ``(3, 3)`` vision noise covariance.
+            smoothing: pseudo-count of the transition and first-mode estimates, ``> 0``.
+            **options: the model's other fields (``inconsistency_penalty``, ``compiled``, ...).
+
+        Raises:
+            ValueError: naming ``rollout`` if it is not a :class:`~torchcontact.sim.Rollout`
+                of at least one step, or the field at fault.
+        """
+        if not isinstance(rollout, Rollout) or rollout.mode.shape[0] == 0:
+            raise ValueError(f"rollout: expected a Rollout of >= 1 step, got {describe(rollout)}")
+        table, ids, _ = collect_modes(rollout.mode)
+        K = len(table)
+        dtype = R.dtype if isinstance(R, Tensor) else torch.float64
+        first = torch.bincount(ids[0].reshape(-1), minlength=K).to(dtype) + smoothing
+        return cls(
+            scene=scene,
+            modes=table,
+            Q=Q,
+            R=R,
+            transition=empirical_transition(ids, K, smoothing=smoothing, dtype=dtype),
+            initial=first / first.sum(),
+            **options,
+        )
 
     @property
     def num_modes(self) -> int:
@@ -511,10 +557,11 @@ def collect_modes(modes: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The table of distinct per-slot mode vectors seen in simulated data.
 
     Args:
-        modes: ``(..., S)`` long per-slot modes, e.g. ``Rollout.mode`` of training rollouts.
+        modes: ``(T, *B, S)`` long per-slot modes, time first, e.g. ``Rollout.mode`` of
+            training rollouts (any leading shape is accepted).
 
     Returns:
-        ``table (K, S)`` (most frequent first), ``ids (...)`` long, each entry's row in the
+        ``table (K, S)`` (most frequent first), ``ids (T, *B)`` long, each entry's row in the
         table, and ``counts (K,)``.
     """
     if not isinstance(modes, Tensor) or modes.dtype != torch.long or modes.ndim < 1:
@@ -537,7 +584,8 @@ def empirical_transition(
     filter can recover from them).
 
     Args:
-        ids: ``(*B, T)`` long mode ids in ``[0, num_modes)``, time last.
+        ids: ``(T, *B)`` long mode ids in ``[0, num_modes)``, time first (as
+            :func:`collect_modes` returns them for ``Rollout.mode``).
         num_modes: ``K``.
         smoothing: pseudo-count added to every entry, ``> 0``.
         dtype: floating dtype of the result.
@@ -548,12 +596,12 @@ def empirical_transition(
     if not isinstance(num_modes, int) or num_modes < 1:
         raise ValueError(f"num_modes: expected an int >= 1, got {num_modes!r}")
     if not isinstance(ids, Tensor) or ids.dtype != torch.long or ids.ndim < 1:
-        raise ValueError(f"ids: expected a long (*B, T) tensor, got {describe(ids)}")
+        raise ValueError(f"ids: expected a long (T, *B) tensor, got {describe(ids)}")
     if bool(((ids < 0) | (ids >= num_modes)).any()):
         raise ValueError(f"ids: values must lie in [0, {num_modes})")
     if not smoothing > 0:
         raise ValueError(f"smoothing: expected > 0, got {smoothing!r}")
-    pairs = ids[..., :-1] * num_modes + ids[..., 1:]
+    pairs = ids[:-1] * num_modes + ids[1:]
     counts = torch.bincount(pairs.reshape(-1), minlength=num_modes * num_modes)
     counts = counts.reshape(num_modes, num_modes).to(dtype) + smoothing
     return counts / counts.sum(-1, keepdim=True)
