@@ -372,8 +372,9 @@ class PlanarContactModel:
         kinematic = (flat.shape[0], q_kin.shape[-2], 3)
         # Without gradients to carry, inference mode spares every small operation autograd's
         # bookkeeping; F and c leave it as ordinary tensors (copies of a few numbers).
-        tracked = torch.is_grad_enabled() and (
-            flat.requires_grad or q_kin.requires_grad or v_kin.requires_grad
+        mu, inverse_mass = self._physics()
+        tracked = torch.is_grad_enabled() and any(
+            t.requires_grad for t in (flat, q_kin, v_kin, mu, inverse_mass)
         )
         layout, table = self._layout, self._mode_table  # built (once) outside inference mode
         linearize = kernel(linearize_modes, compiled=self.compiled)
@@ -384,6 +385,8 @@ class PlanarContactModel:
                 flat,
                 q_kin.reshape(kinematic),
                 v_kin.reshape(kinematic),
+                mu=mu,
+                inverse_mass=inverse_mass,
                 consistency_gap=self.consistency_gap,
                 consistency_tolerance=self.consistency_tolerance,
                 for_compile=self.compiled,
@@ -394,6 +397,25 @@ class PlanarContactModel:
             c.to(dtype, copy=True).view(*batch, K, STATE_DIM),
             consistent.view(*batch, K),
         )
+
+    def _physics(self) -> tuple[Tensor, Tensor]:
+        """``(S,)`` friction of every slot and ``(3,)`` ``(1/m, 1/m, 1/I)`` of the tracked body,
+        float64, from the scene's values: tensors that require grad keep their graph (a model
+        of a scene with such parameters is differentiable with respect to them)."""
+        if not self._parameters_require_grad:
+            return self._constant_physics
+        return _physics_of(self.scene, self.device)
+
+    @cached_property
+    def _parameters_require_grad(self) -> bool:
+        scene, body = self.scene, self.scene.bodies[self.scene.dynamic[0]]
+        values = [scene.friction, *scene.pair_friction.values(), body.mass, body.inertia]
+        return any(isinstance(value, Tensor) and value.requires_grad for value in values)
+
+    @cached_property
+    def _constant_physics(self) -> tuple[Tensor, Tensor]:
+        with torch.no_grad():
+            return _physics_of(self.scene, self.device)
 
     def _step(self, x: Tensor, modes: Tensor, q_kin: Tensor, v_kin: Tensor) -> Tensor:
         """``f`` on batches: x ``(*P, 6)``, modes ``(*P, S)``, q/v_kin ``(*P, Nk, 3)``."""
@@ -543,6 +565,22 @@ class PlanarContactModel:
                     f"{name}: batch {tuple(value.shape[:-2])} does not broadcast to {tuple(batch)}"
                 ) from err
         return out[0], out[1]
+
+
+def _physics_of(scene: Scene, device: torch.device) -> tuple[Tensor, Tensor]:
+    """See :meth:`PlanarContactModel._physics`."""
+    f64 = torch.float64
+    mu = torch.cat(
+        [
+            torch.as_tensor(scene.pair_mu(group.receiver, group.other), dtype=f64)
+            .to(device)
+            .expand(group.count)
+            for group in scene.slot_groups
+        ]
+    )
+    body = scene.bodies[scene.dynamic[0]]
+    mass, inertia = body.mass_value().to(device), body.inertia_value().to(device)
+    return mu, torch.stack([mass, mass, inertia]).reciprocal()
 
 
 def _check_state(x: object) -> None:

@@ -80,8 +80,8 @@ class ModeTable:
             first slots it does not (``W_max`` the most slots any mode activates).
         activates: ``(K, W_max)`` bool, the mode activates the slot (mode ≥ 1).
         sticks: ``(K, W_max)`` bool, the slot sticks in the mode (mode 1).
-        slide: ``(K, W_max)`` float64 ``±μ`` of slots sliding with friction along ``±t``,
-            else 0.
+        sliding_sign: ``(K, W_max)`` float64 ``±1`` where the slot slides with friction
+            along ``±t``, else 0.
         acting: ``(K, S)`` bool, the slot carries an impulse in the mode (mode ≥ 1).
         sticking: ``(K, S)`` bool, mode 1.
         slide_sign: ``(K, S)`` float64 ``+1`` where the slot slides with friction along
@@ -92,7 +92,7 @@ class ModeTable:
     slots: Tensor
     activates: Tensor
     sticks: Tensor
-    slide: Tensor
+    sliding_sign: Tensor
     acting: Tensor
     sticking: Tensor
     slide_sign: Tensor
@@ -101,7 +101,7 @@ class ModeTable:
 def mode_table(layout: SlotLayout, modes: Tensor) -> ModeTable:
     """The :class:`ModeTable` of ``(K, S)`` long per-slot modes."""
     f64 = torch.float64
-    modes = modes.to(layout.mu.device)
+    modes = modes.to(layout.frame.device)
     acting = modes >= 1
     W = max(1, int(acting.sum(-1).max()))
     slots = torch.argsort(acting.to(torch.uint8), dim=-1, descending=True, stable=True)[:, :W]
@@ -111,7 +111,7 @@ def mode_table(layout: SlotLayout, modes: Tensor) -> ModeTable:
         slots=slots,
         activates=acting.gather(-1, slots),
         sticks=(modes == 1).gather(-1, slots),
-        slide=(sign * layout.mu).gather(-1, slots),
+        sliding_sign=sign.gather(-1, slots),
         acting=acting,
         sticking=modes == 1,
         slide_sign=sign,
@@ -125,6 +125,8 @@ def linearize_modes(
     q_kinematic: Tensor,
     v_kinematic: Tensor,
     *,
+    mu: Tensor,
+    inverse_mass: Tensor,
     consistency_gap: float,
     consistency_tolerance: float,
     for_compile: bool = False,
@@ -137,6 +139,9 @@ def linearize_modes(
         x: ``(B, 6)`` float64 linearization points.
         q_kinematic: ``(B, Nk, 3)`` float64 kinematic poses.
         v_kinematic: ``(B, Nk, 3)`` float64 kinematic twists.
+        mu: ``(S,)`` float64 friction coefficient of every slot (may require grad).
+        inverse_mass: ``(3,)`` float64 ``(1/m, 1/m, 1/I)`` of the tracked body (may require
+            grad).
         consistency_gap: gaps of a mode's slots within ``±consistency_gap`` are taken as
             closed by the check: a mean a millimetre off a contact (whose ``φ/h`` correction
             would turn its impulse around) does not count against the mode, while a contact
@@ -163,7 +168,8 @@ def linearize_modes(
     keep = slots.gather(-1, order)  # (B, K, W)
     acting = acting.gather(-1, order)
     sticks = acting & table.sticks.expand(B, K, -1).gather(-1, order)
-    slide = table.slide.expand(B, K, -1).gather(-1, order)[:, :, None, :, None]
+    slide = (table.sliding_sign * mu[table.slots]).expand(B, K, -1).gather(-1, order)
+    slide = slide[:, :, None, :, None]  # ±μ of the sliding slots
 
     # solve_mode on those slots: constraint rows C (normals, then tangents) and impulse rows
     # G (the same with μ Jt_d added to the normals of sliding slots); the rows of acting
@@ -178,7 +184,7 @@ def linearize_modes(
     rows_on = on[:, :, None, :, None]
     on_c = rows_on[..., : 2 * W, :]
     CG = torch.cat([Jn, Jt, Jn + slide * Jt, Jt], dim=-2) * rows_on
-    C, U = CG[..., : 2 * W, :], (CG[..., 2 * W :, :] * layout.inverse_mass).mT  # (B, K, 4, ·, ·)
+    C, U = CG[..., : 2 * W, :], (CG[..., 2 * W :, :] * inverse_mass).mT  # (B, K, 4, ·, ·)
     target = torch.cat([bn + phi / h, bt], dim=-2)  # (B, K, 4, 2W, 1)
     C0, U0 = C[:, :, :1], U[:, :, :1]
     system = C0 @ U0  # (B, K, 1, 2W, 2W)
@@ -238,12 +244,11 @@ def linearize_modes(
         -1, keep.unsqueeze(2).expand_as(impulse), impulse
     )
     pn, tangential = placed.unbind(2)
-    friction = torch.where(table.sticking, tangential, table.slide_sign * layout.mu * pn)
+    friction = torch.where(table.sticking, tangential, table.slide_sign * mu * pn)
     pt = torch.stack([friction.clamp(min=0.0), (-friction).clamp(min=0.0)], dim=-1)
     phi_all = centre[:, None, :, 0]  # (B, 1, S)
     rows_centre = centre[:, None, :, 1:7].unflatten(-1, (2, 3))  # (B, 1, S, 2, 3): Jn, Jt
     known = centre[:, None, :, 7:9]  # (B, 1, S, 2): bn, bt
-    inverse_mass = layout.inverse_mass
     problem = ContactProblem.unchecked(
         M=torch.diag(inverse_mass.reciprocal()),
         v=x[:, None, 3:],
@@ -251,7 +256,7 @@ def linearize_modes(
         Jn=rows_centre[..., 0, :],
         Jt=torch.stack([rows_centre[..., 1, :], -rows_centre[..., 1, :]], dim=-2),
         phi=torch.where(table.acting, phi_all - phi_all.clamp(-gap, gap), phi_all),
-        mu=layout.mu,
+        mu=mu,
         h=h,
         mask=candidate.unsqueeze(1),
         bn=known[..., 0],
