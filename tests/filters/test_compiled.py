@@ -38,12 +38,15 @@ def _linearize(
     model: PlanarContactModel, x: torch.Tensor, control: KinematicControl, *, for_compile: bool
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     q_kin, v_kin = model._control(control, x.shape[:-1], F64)
+    mu, inverse_mass = model._physics()
     return linearize_modes(
         model._layout,
         model._mode_table,
         x,
         q_kin,
         v_kin,
+        mu=mu,
+        inverse_mass=inverse_mass,
         consistency_gap=model.consistency_gap,
         consistency_tolerance=model.consistency_tolerance,
         for_compile=for_compile,

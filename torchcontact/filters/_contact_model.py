@@ -570,14 +570,16 @@ class PlanarContactModel:
 def _physics_of(scene: Scene, device: torch.device) -> tuple[Tensor, Tensor]:
     """See :meth:`PlanarContactModel._physics`."""
     f64 = torch.float64
-    mu = torch.cat(
-        [
-            torch.as_tensor(scene.pair_mu(group.receiver, group.other), dtype=f64)
-            .to(device)
-            .expand(group.count)
-            for group in scene.slot_groups
-        ]
-    )
+    parts = []
+    for group in scene.slot_groups:
+        friction = torch.as_tensor(scene.pair_mu(group.receiver, group.other), dtype=f64)
+        if friction.numel() != 1:
+            raise ValueError(
+                "scene: the linearization needs scalar friction coefficients, got a tensor of "
+                f"shape {tuple(friction.shape)}"
+            )
+        parts.append(friction.to(device).reshape(()).expand(group.count))
+    mu = torch.cat(parts)
     body = scene.bodies[scene.dynamic[0]]
     mass, inertia = body.mass_value().to(device), body.inertia_value().to(device)
     return mu, torch.stack([mass, mass, inertia]).reciprocal()
