@@ -2,7 +2,8 @@
 pose manifolds, the Rauch–Tung–Striebel smoother, resampling, linear switching models, and the
 Rao-Blackwellized particle filter that tracks discrete contact modes with a Kalman filter per
 particle (with :func:`project_out_of_contact`, its constrained update out of the bodies), and
-the baseline :class:`SimulatorParticleFilter` that steps its particles through the simulator.
+the baseline :class:`SimulatorParticleFilter` that steps its particles through the simulator;
+:func:`fit_parameters` finds the physical parameters that maximize a filter's evidence.
 
 Everything is functional (``predict(belief, ...) -> belief``), batched over leading dims and
 differentiable; float32 and float64 both work.
@@ -15,6 +16,7 @@ from torchcontact.filters._contact_model import (
     empirical_transition,
 )
 from torchcontact.filters._ekf import Dynamics, Measurement, ekf_predict, ekf_update
+from torchcontact.filters._fit import FitResult, fit_parameters
 from torchcontact.filters._gaussian import Gaussian
 from torchcontact.filters._kalman import kf_predict, kf_update
 from torchcontact.filters._manifold import (
@@ -51,6 +53,7 @@ __all__ = [
     "SE3",
     "Dynamics",
     "Euclidean",
+    "FitResult",
     "Gaussian",
     "KinematicControl",
     "LinearSwitchingModel",
@@ -72,6 +75,7 @@ __all__ = [
     "ekf_predict",
     "ekf_update",
     "empirical_transition",
+    "fit_parameters",
     "kf_predict",
     "kf_update",
     "optimal_resample",
