@@ -17,6 +17,11 @@ the contact RBPF (:func:`grasp_contact_model`), the simulator particle filter, a
 vision; :func:`evaluate_tracking`, :func:`grasp_summary` and :func:`tracking_table` score them
 and :func:`plot_grasp_snapshots`, :func:`plot_tracking_errors` and :func:`plot_mode_timeline`
 draw them.
+
+Fitting (:mod:`torchcontact.filters`): :func:`sliding_logs` simulates boxes sliding to a stop
+under a noisy camera (:class:`SlidingFit` holds the settings), :func:`sliding_evidence` is the
+contact RBPF's evidence of friction and camera noise over them, and :data:`FITTERS` maximize
+it by gradient, over a grid and by CMA-ES.
 """
 
 from torchcontact._checks import check_choice, check_int, check_name, check_real
@@ -28,6 +33,16 @@ from torchcontact.experiments._checkpoint import (
     open_run,
     read_checkpoint,
     save_checkpoint,
+)
+from torchcontact.experiments._friction_fit import (
+    FIT_METHODS,
+    FITTERS,
+    FitOutcome,
+    SlidingFit,
+    SlidingLogs,
+    box_scene,
+    sliding_evidence,
+    sliding_logs,
 )
 from torchcontact.experiments._peg_execution import (
     NUM_BELIEF_FEATURES,
@@ -81,21 +96,27 @@ from torchcontact.experiments._triangle_grasp_plots import (
 
 __all__ = [
     "CHECKPOINT",
+    "FITTERS",
+    "FIT_METHODS",
     "GRASP_METHODS",
     "LOCATION",
     "NUM_BELIEF_FEATURES",
     "SETTINGS",
     "EstimatorRuns",
     "Evaluation",
+    "FitOutcome",
     "GraspTrials",
     "PegLearning",
     "PotentialShaping",
     "QLookup",
     "RoundResult",
     "Setting",
+    "SlidingFit",
+    "SlidingLogs",
     "Timing",
     "TriangleGrasp",
     "belief_features",
+    "box_scene",
     "calibrate_pf",
     "check_choice",
     "check_int",
@@ -128,6 +149,8 @@ __all__ = [
     "run_vision",
     "save_checkpoint",
     "simulate_grasps",
+    "sliding_evidence",
+    "sliding_logs",
     "timed",
     "tracking_table",
     "triangle_scene",
