@@ -253,36 +253,52 @@ def planar_slots(
         world = torch.cat([world.unsqueeze(-4), moving], dim=-4)
     shapes = world.index_select(-3, table.group_shapes)
     points, other = shapes[..., :G, :V, :], shapes[..., G:, :, :]  # (*B, [D,] G, ·, 2)
-    edges = other[..., V : 3 * V, :]  # (*B, [D,] G, 2V, 2): outward normals, then directions
-    relative = points - other[..., 3 * V :, :]
-    if pose_tangents is not None:
-        # Products of rows: value · derivative + derivative · value.
-        edges_value, relative_value = edges[..., :1, :, :, :], relative[..., :1, :, :, :]
-        projection = relative_value @ edges_value.mT - table.edge_offset
-        moved = (
-            relative[..., 1:, :, :, :] @ edges_value.mT
-            + relative_value @ edges[..., 1:, :, :, :].mT
-        )[..., :V]  # (*B, T, G, V, V): the distances' derivatives
-        projection = projection.squeeze(-4)
-    else:
-        projection = relative @ edges.mT - table.edge_offset
-    distance, along = projection[..., :V], projection[..., V:]  # (*B, G, V, V) each
+    normals, directions = other[..., V : 2 * V, :], other[..., 2 * V : 3 * V, :]
+    relative = points - other[..., 3 * V :, :]  # (*B, [D,] G, V, 2)
+    stacked = pose_tangents is not None
+    relative_value = relative[..., 0, :, :, :] if stacked else relative
+    # Signed distances of every vertex to every edge: (*B, G, V, V).
+    distance = _dot(relative_value, normals[..., 0, :, :, :] if stacked else normals)
+    distance = distance - table.edge_offset[..., :V]
     phi = distance.amax(dim=-1, keepdim=True)
     tie = distance >= phi - table.tie_tolerance
     closest = torch.where(tie, distance + table.facing_offset, -_FAR).argmax(-1, keepdim=True)
-    in_reach = (along >= -table.margin) & (along <= table.edge_reach)
-    active = in_reach.gather(-1, closest) & (phi <= table.margin)  # (*B, G, V, 1)
+    # The closest edge: its outward normal is the slot's normal; the vertex must project onto
+    # it within the margin.
     index = closest.expand(*closest.shape[:-1], 2)  # (*B, G, V, 2)
-    if pose_tangents is not None:
-        turning = moved.gather(-1, closest.unsqueeze(-4).expand_as(moved[..., :1]))
+    direction = (directions[..., 0, :, :, :] if stacked else directions).gather(-2, index)
+    lengthwise = table.edge_offset[..., V:].expand(*closest.shape[:-1], V).gather(-1, closest)
+    along = (relative_value * direction).sum(-1, keepdim=True) - lengthwise
+    reach = table.edge_reach.expand(*closest.shape[:-1], V).gather(-1, closest)
+    active = (along >= -table.margin) & (along <= reach) & (phi <= table.margin)  # (*B, G, V, 1)
+    if stacked:
+        normal = normals.gather(-2, index.unsqueeze(-4).expand(normals.shape))
+        # φ's derivative: that of the closest edge's distance (the one whose normal it takes).
+        turning = torch.addcmul(
+            relative[..., 1:, :, :, :] * normal[..., :1, :, :, :],
+            relative_value.unsqueeze(-4),
+            normal[..., 1:, :, :, :],
+        ).sum(-1, keepdim=True)
         phi = torch.cat([phi.unsqueeze(-4), turning], dim=-4)  # (*B, D, G, V, 1)
-        index = index.unsqueeze(-4).expand(*edges.shape[:-2], V, 2)
-    # The closest edge's outward normal is the slot's normal.
-    normals = edges[..., :V, :].gather(-2, index)  # (*B, [D,] G, V, 2)
+    else:
+        normal = normals.gather(-2, index)  # (*B, G, V, 2)
     source = table.slot_source
     return SlotGeometry(
         points=points.flatten(-3, -2).index_select(-2, source),
-        normals=normals.flatten(-3, -2).index_select(-2, source),
+        normals=normal.flatten(-3, -2).index_select(-2, source),
         phi=phi.flatten(-3).index_select(-1, source),
         active=active.flatten(-3).index_select(-1, source),
+    )
+
+
+def _dot(rows: Tensor, columns: Tensor) -> Tensor:
+    """``(..., R, C)`` dot products of ``rows (..., R, 2)`` with ``columns (..., C, 2)``.
+
+    The batched matrix product ``rows @ columns.mT`` of tiny matrices, elementwise: CPU batched
+    GEMM runs one small kernel per matrix.
+    """
+    return torch.addcmul(
+        rows[..., :, None, 0] * columns[..., None, :, 0],
+        rows[..., :, None, 1],
+        columns[..., None, :, 1],
     )

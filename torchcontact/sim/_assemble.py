@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import weakref
 from dataclasses import dataclass
 
@@ -34,12 +35,13 @@ class SceneLayout:
             order: the scene's).
         static_poses: ``(Nf, 3)`` world poses of the static polygons, then zeros for the
             half-planes.
-        receiver_dynamic: ``(K, Nd)`` 1 at the dynamic column of each slot's receiver, if it
-            is dynamic.
-        other_dynamic: ``(K, Nd)`` the same for each slot's other body.
-        receiver_kinematic: ``(K, Nk)`` 1 at the kinematic index of each slot's receiver, if
-            it is kinematic.
-        other_kinematic: ``(K, Nk)`` the same for each slot's other body.
+        receiver_column: ``(K,)`` long: the dynamic-body index of each slot's receiver, ``Nd``
+            if it is not dynamic.
+        other_column: ``(K,)`` long: the same for each slot's other body.
+        receiver_driver: ``(K,)`` long: the kinematic-body index of each slot's receiver,
+            ``Nk`` if it is not kinematic.
+        other_driver: ``(K,)`` long: the same for each slot's other body.
+        num_dynamic: ``Nd``.
         mutual: some slot has a dynamic other body.
         driven_receiver: some slot's receiver is kinematic.
         driven_other: some slot's other body is kinematic.
@@ -56,10 +58,11 @@ class SceneLayout:
 
     slots: PlanarSlotTable
     static_poses: Tensor
-    receiver_dynamic: Tensor
-    other_dynamic: Tensor
-    receiver_kinematic: Tensor
-    other_kinematic: Tensor
+    receiver_column: Tensor
+    other_column: Tensor
+    receiver_driver: Tensor
+    other_driver: Tensor
+    num_dynamic: int
     mutual: bool
     driven_receiver: bool
     driven_other: bool
@@ -106,19 +109,17 @@ def _build_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> Sce
         static_poses[s] = pose.detach()
 
     K, Nd, Nk = scene.num_slots, len(scene.dynamic), len(scene.kinematic)
-    one_hot = {
-        name: torch.zeros(K, size, dtype=torch.float64)
-        for name, size in (("rd", Nd), ("od", Nd), ("rk", Nk), ("ok", Nk))
-    }
+    columns = {name: torch.full((K,), size, dtype=torch.long) for name, size in
+               (("rd", Nd), ("od", Nd), ("rk", Nk), ("ok", Nk))}  # fmt: skip
     sources: list[float | Tensor] = []
     slot_friction: list[int] = []
     for group in scene.slot_groups:
         span = slice(group.start, group.start + group.count)
         for member, dynamic, kinematic in ((group.receiver, "rd", "rk"), (group.other, "od", "ok")):
             if member in scene.dynamic:
-                one_hot[dynamic][span, scene.dynamic.index(member)] = 1.0
+                columns[dynamic][span] = scene.dynamic.index(member)
             elif member in scene.kinematic:
-                one_hot[kinematic][span, scene.kinematic.index(member)] = 1.0
+                columns[kinematic][span] = scene.kinematic.index(member)
         friction = scene.pair_mu(group.receiver, group.other)
         found = [k for k, source in enumerate(sources) if source is friction]
         if not found:
@@ -149,13 +150,14 @@ def _build_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> Sce
     return SceneLayout(
         slots=table.to(dtype=dtype, device=device),
         static_poses=move(static_poses),
-        receiver_dynamic=move(one_hot["rd"]),
-        other_dynamic=move(one_hot["od"]),
-        receiver_kinematic=move(one_hot["rk"]),
-        other_kinematic=move(one_hot["ok"]),
-        mutual=bool(one_hot["od"].any()),
-        driven_receiver=bool(one_hot["rk"].any()),
-        driven_other=bool(one_hot["ok"].any()),
+        receiver_column=move(columns["rd"]),
+        other_column=move(columns["od"]),
+        receiver_driver=move(columns["rk"]),
+        other_driver=move(columns["ok"]),
+        num_dynamic=Nd,
+        mutual=bool((columns["od"] < Nd).any()),
+        driven_receiver=bool((columns["rk"] < Nk).any()),
+        driven_other=bool((columns["ok"] < Nk).any()),
         friction_sources=tuple(sources),
         slot_friction=torch.tensor(slot_friction, dtype=torch.long, device=device),
         mu=mu,
@@ -195,32 +197,171 @@ def shape_poses(layout: SceneLayout, q: Tensor, q_kinematic: Tensor) -> Tensor:
     return torch.cat([q, q_kinematic, static], dim=-2)
 
 
-def dynamic_rows(layout: SceneLayout, poses: Tensor, points: Tensor, directions: Tensor) -> Tensor:
-    """Rows mapping the dynamic bodies' twists to the slots' relative velocities along
-    directions.
+def _pick(table: Tensor, index: Tensor) -> Tensor:
+    """``(P, W, C)``: the rows ``index (P, W)`` of ``table (P, R, C)``."""
+    return table.gather(1, index.unsqueeze(-1).expand(*index.shape, table.shape[-1]))
+
+
+def dynamic_rows(
+    layout: SceneLayout, poses: Tensor, points: Tensor, directions: Tensor, slots: Tensor
+) -> Tensor:
+    """Rows mapping the dynamic bodies' twists to slots' relative velocities along directions.
 
     A dynamic receiver contributes ``+[u, r × u]`` (``r`` from its centroid to the slot's
     point), a dynamic other body ``−[u, r × u]``, in its three columns.
 
     Args:
         layout: the scene's layout.
-        poses: ``(*B, Ns, 3)`` world poses of the layout's shapes.
-        points: ``(*B, K, 2)`` the slots' points, world frame.
-        directions: ``(*B, K, F, 2)`` unit directions ``u`` per slot, world frame.
+        poses: ``(P, Ns, 3)`` world poses of the layout's shapes.
+        points: ``(P, W, 2)`` the slots' points, world frame.
+        directions: ``(P, W, F, 2)`` unit directions ``u`` per slot, world frame.
+        slots: ``(P, W)`` long: the slots' indices among the scene's ``K``.
 
     Returns:
-        ``(*B, K, F, 3 Nd)`` rows.
+        ``(P, W, F, 3 Nd)`` rows.
+    """
+    Nd = layout.num_dynamic
+    # Blocks scatter into 3 (Nd + 1) columns: a member that is not dynamic goes to the last
+    # block, which is dropped.
+    rows = points.new_zeros(*directions.shape[:-1], 3 * (Nd + 1))
+    members = [(layout.slots.slot_receiver, layout.receiver_column, 1.0)]
+    if layout.mutual:
+        members.append((layout.slots.slot_other, layout.other_column, -1.0))
+    for shape, column, sign in members:
+        arm = (points - _pick(poses, shape[slots])[..., :2]).unsqueeze(-2)  # (P, W, 1, 2)
+        wrench = torch.cat([directions, cross2(arm, directions).unsqueeze(-1)], dim=-1)
+        first = 3 * column[slots][..., None, None]  # (P, W, 1, 1)
+        index = (first + torch.arange(3, device=first.device)).expand(wrench.shape)
+        rows = rows.scatter(-1, index, sign * wrench)
+    return rows[..., : 3 * Nd]
+
+
+def known_velocities(
+    layout: SceneLayout, poses: Tensor, points: Tensor, frames: Tensor, control: Tensor | None
+) -> Tensor:
+    """``(P, K, F)`` the kinematic bodies' contribution to every slot's relative velocity along
+    its directions: ``±u · (v + ω × r)`` of a kinematic receiver (``+``) or other body (``−``).
+
+    Args:
+        layout: the scene's layout.
+        poses: ``(P, Ns, 3)`` world poses of the layout's shapes.
+        points: ``(P, K, 2)`` every slot's point, world frame.
+        frames: ``(P, K, F, 2)`` unit directions per slot, world frame.
+        control: ``(P, Nk, 3)`` twists of the kinematic bodies, or ``None`` (at rest).
+    """
+    known = frames.new_zeros(frames.shape[:-1])
+    if control is None:
+        return known
+    # Twists of the slots' members, zero where a member is not kinematic.
+    twists = torch.cat([control, control.new_zeros(control.shape[0], 1, 3)], dim=-2)
+    slots = layout.slots
+    for driven, shape, driver, sign in (
+        (layout.driven_receiver, slots.slot_receiver, layout.receiver_driver, 1.0),
+        (layout.driven_other, slots.slot_other, layout.other_driver, -1.0),
+    ):
+        if driven:
+            twist = twists.index_select(-2, driver)  # (P, K, 3)
+            arm = points - poses.index_select(-2, shape)[..., :2]
+            spun = arm.flip(-1) * slots.turn
+            velocity = torch.addcmul(twist[..., :2], twist[..., 2:], spun)
+            known = known + sign * (frames * velocity.unsqueeze(-2)).sum(-1)
+    return known
+
+
+@dataclass(frozen=True, eq=False)
+class SlotState:
+    """The slots of a flat batch of scene states, before any problem is assembled.
+
+    Attributes:
+        layout: the scene's layout.
+        poses: ``(P, Ns, 3)`` world poses of the layout's shapes.
+        geometry: the ``K`` slots' geometry, batch ``(P,)``.
+        frames: ``(P, K, 2, 2)`` each slot's normal ``n`` and tangent ``t`` (``n`` turned by
+            +90°), world frame.
+        known: ``(P, K, 2)`` the known velocity terms ``bn`` and ``bt`` (along ``+t``).
     """
 
-    def rows(shape: Tensor, columns: Tensor) -> Tensor:
-        arm = (points - poses.index_select(-2, shape)[..., :2]).unsqueeze(-2)  # (*B, K, 1, 2)
-        wrench = torch.cat([directions, cross2(arm, directions).unsqueeze(-1)], dim=-1)
-        return columns[:, None, :, None] * wrench.unsqueeze(-2)  # (*B, K, F, Nd, 3)
+    layout: SceneLayout
+    poses: Tensor
+    geometry: SlotGeometry
+    frames: Tensor
+    known: Tensor
 
-    blocks = rows(layout.slots.slot_receiver, layout.receiver_dynamic)
-    if layout.mutual:
-        blocks = blocks - rows(layout.slots.slot_other, layout.other_dynamic)
-    return blocks.flatten(-2)
+
+def slot_state(scene: Scene, q: Tensor, q_kinematic: Tensor, control: Tensor | None) -> SlotState:
+    """The :class:`SlotState` of a flat batch: dynamic poses ``q (P, Nd, 3)``, kinematic poses
+    ``q_kinematic (P, Nk, 3)`` and twists ``control (P, Nk, 3)`` (or ``None``)."""
+    layout = scene_layout(scene, q.dtype, q.device)
+    poses = shape_poses(layout, q, q_kinematic)
+    geometry = planar_slots(layout.slots, poses)
+    normal = geometry.normals
+    frames = torch.stack([normal, normal.flip(-1) * layout.slots.turn], dim=-2)
+    known = known_velocities(layout, poses, geometry.points, frames, control)
+    return SlotState(layout, poses, geometry, frames, known)
+
+
+def assemble(
+    scene: Scene,
+    slots: SlotState,
+    v: Tensor,
+    keep: Tensor,
+    *,
+    force: Tensor | None,
+    friction: Tensor | None,
+) -> ContactProblem:
+    """The contact problem of a flat batch on the slots ``keep``.
+
+    Args:
+        scene: the scene.
+        slots: the batch's :class:`SlotState`, batch ``(P,)``.
+        v: ``(P, Nd, 3)`` twists of the dynamic bodies.
+        keep: ``(P, W)`` long: the slots of each entry's problem, among the ``K``.
+        force: ``(P, Nd, 3)`` applied generalized forces, or ``None``.
+        friction: ``(P, K)`` per-slot friction overriding the scene's, or ``None``.
+
+    Returns:
+        The problem, batch ``(P,)``, ``W`` slots.
+    """
+    layout, geometry = slots.layout, slots.geometry
+    P, dtype, device = v.shape[0], v.dtype, v.device
+
+    def gather(t: Tensor) -> Tensor:  # (P, K, ...) -> (P, W, ...)
+        index = keep.view(*keep.shape, *([1] * (t.dim() - 2)))
+        return t.gather(1, index.expand(*keep.shape, *t.shape[2:]))
+
+    frames = gather(slots.frames)
+    rows = dynamic_rows(layout, slots.poses, gather(geometry.points), frames, keep)
+    Jt_row = rows[..., 1, :]
+    known = gather(slots.known)
+    if layout.mass_matrix is None or layout.gravity_force is None:
+        M = scene.mass_matrix().to(dtype=dtype, device=device)
+        f = _gravity_force(scene, dtype, device)
+    else:
+        M, f = layout.mass_matrix, layout.gravity_force
+    f = f.expand(P, -1, 3) if force is None else f + force
+    if friction is not None:
+        mu = gather(friction)
+    elif layout.mu is not None:
+        mu = layout.mu[keep]
+    else:
+        values = [
+            torch.as_tensor(source, dtype=dtype, device=device).expand(P)
+            for source in layout.friction_sources
+        ]
+        mu = torch.stack(values, dim=-1).gather(1, layout.slot_friction[keep])
+    return ContactProblem.unchecked(
+        M=M,
+        v=v.flatten(-2),
+        f=f.flatten(-2),
+        Jn=rows[..., 0, :],
+        Jt=torch.stack([Jt_row, -Jt_row], dim=-2),
+        phi=gather(geometry.phi),
+        mu=mu,
+        h=scene.h,
+        mask=gather(geometry.active),
+        bn=known[..., 0],
+        bt=torch.stack([known[..., 1], -known[..., 1]], dim=-1),
+    )
 
 
 def contact_problem(
@@ -254,56 +395,22 @@ def contact_problem(
         The contact problem (``n = 3 Nd``, ``K`` slots, ``D = 2``) and the slot geometry
         (points, normals from each slot's ``other`` body into its receiver, gaps, candidates).
     """
-    q = state.q
-    dtype, batch = q.dtype, state.batch_shape
-    layout = scene_layout(scene, dtype, q.device)
-    poses = shape_poses(layout, q, state.q_kinematic)
-    geometry = planar_slots(layout.slots, poses)
-    normal = geometry.normals
-    frames = torch.stack([normal, normal.flip(-1) * layout.slots.turn], dim=-2)  # n, t
-    rows = dynamic_rows(layout, poses, geometry.points, frames)  # (*B, K, 2, n)
-    Jt_row = rows[..., 1, :]
+    batch, K = state.batch_shape, scene.num_slots
+    P, Nd, Nk = math.prod(batch), len(scene.dynamic), len(scene.kinematic)
 
-    known = torch.zeros((), dtype=dtype, device=q.device).expand(*geometry.phi.shape, 2)
-    if control is not None:
-        for driven, shape, columns, sign in (
-            (layout.driven_receiver, layout.slots.slot_receiver, layout.receiver_kinematic, 1),
-            (layout.driven_other, layout.slots.slot_other, layout.other_kinematic, -1),
-        ):
-            if driven:
-                twist = columns @ control  # (*B, K, 3)
-                arm = geometry.points - poses.index_select(-2, shape)[..., :2]
-                spun = arm.flip(-1) * layout.slots.turn
-                velocity = torch.addcmul(twist[..., :2], twist[..., 2:], spun)
-                known = known + sign * (frames * velocity.unsqueeze(-2)).sum(-1)
+    def flat(t: Tensor | None) -> Tensor | None:
+        return None if t is None else t.reshape(P, *t.shape[len(batch) :])
 
-    if layout.mass_matrix is None or layout.gravity_force is None:
-        M = scene.mass_matrix().to(dtype=dtype, device=q.device)
-        f = _gravity_force(scene, dtype, q.device)
-    else:
-        M, f = layout.mass_matrix, layout.gravity_force
-    f = f.expand(*batch, -1, 3) if force is None else f + force
-    if friction is not None:
-        mu = friction
-    elif layout.mu is not None:
-        mu = layout.mu
-    else:
-        values = [
-            torch.as_tensor(source, dtype=dtype, device=q.device).expand(batch)
-            for source in layout.friction_sources
-        ]
-        mu = torch.stack(values, dim=-1).index_select(-1, layout.slot_friction)
-    problem = ContactProblem.unchecked(
-        M=M,
-        v=state.v.flatten(-2),
-        f=f.flatten(-2),
-        Jn=rows[..., 0, :],
-        Jt=torch.stack([Jt_row, -Jt_row], dim=-2),
-        phi=geometry.phi,
-        mu=mu,
-        h=scene.h,
-        mask=geometry.active,
-        bn=known[..., 0],
-        bt=torch.stack([known[..., 1], -known[..., 1]], dim=-1),
+    q, q_kinematic = state.q.reshape(P, Nd, 3), state.q_kinematic.reshape(P, Nk, 3)
+    slots = slot_state(scene, q, q_kinematic, flat(control))
+    keep = torch.arange(K, device=q.device).expand(P, K)
+    problem = assemble(
+        scene, slots, state.v.reshape(P, Nd, 3), keep, force=flat(force), friction=flat(friction)
     )
-    return problem, geometry
+    geometry = slots.geometry
+    return problem.reshape(*batch), SlotGeometry(
+        points=geometry.points.reshape(*batch, K, 2),
+        normals=geometry.normals.reshape(*batch, K, 2),
+        phi=geometry.phi.reshape(*batch, K),
+        active=geometry.active.reshape(*batch, K),
+    )

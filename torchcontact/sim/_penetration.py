@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import math
+
+import torch
 from torch import Tensor
 
 from torchcontact._checks import check_batched, check_float
@@ -40,9 +43,17 @@ def penetration(scene: Scene, *, q: Tensor, q_kinematic: Tensor) -> tuple[Tensor
     check_batched(
         "q_kinematic", q_kinematic, shape=(*batch, num_kinematic, 3), like=q, like_name="q"
     )
+    P, K = math.prod(batch), scene.num_slots
     layout = scene_layout(scene, q.dtype, q.device)
-    poses = shape_poses(layout, q, q_kinematic)
+    poses = shape_poses(
+        layout, q.reshape(P, num_dynamic, 3), q_kinematic.reshape(P, num_kinematic, 3)
+    )
     geometry = planar_slots(layout.slots, poses)
-    Jn = dynamic_rows(layout, poses, geometry.points, geometry.normals.unsqueeze(-2))[..., 0, :]
+    keep = torch.arange(K, device=q.device).expand(P, K)
+    Jn = dynamic_rows(layout, poses, geometry.points, geometry.normals.unsqueeze(-2), keep)
     penetrating = geometry.active & (geometry.phi < 0)
-    return geometry.phi.where(penetrating, 0.0), Jn * penetrating[..., None], penetrating
+    return (
+        geometry.phi.where(penetrating, 0.0).reshape(*batch, K),
+        (Jn[..., 0, :] * penetrating[..., None]).reshape(*batch, K, 3 * num_dynamic),
+        penetrating.reshape(*batch, K),
+    )

@@ -21,7 +21,7 @@ from torchcontact.contact import (
     solve_mode,
 )
 from torchcontact.geometry import SlotGeometry
-from torchcontact.sim._assemble import contact_problem
+from torchcontact.sim._assemble import assemble, slot_state
 from torchcontact.sim._scene import Scene
 from torchcontact.sim._state import SceneState
 
@@ -225,10 +225,7 @@ class Simulator:
             check_batched("friction", friction, shape=(*batch, K), like=state.q, like_name="q")
             if friction.numel() and float(friction.min()) < 0:
                 raise ValueError(f"friction must be >= 0, got minimum {float(friction.min())}")
-        problem, geometry = contact_problem(
-            self.scene, state, control=control, force=force, friction=friction
-        )
-        solution, solver = self._solve_compacted(problem, state.mode)
+        solution, solver, geometry = self._step_compacted(state, control, force, friction)
         h = self.scene.h
         v_next = solution.v_next.unflatten(-1, (len(self.scene.dynamic), 3))
         q_kinematic = state.q_kinematic
@@ -334,56 +331,69 @@ class Simulator:
             solver=empty(dtype=torch.long),
         )
 
-    def _solve_compacted(self, problem: ContactProblem, guess: Tensor) -> tuple[Solution, Tensor]:
-        """Solve on the candidate slots (step 2 of the class docstring), scatter back.
-
-        Args:
-            problem: the full problem, batch ``*B``, ``K`` slots.
-            guess: ``(*B, K)`` the previous step's modes.
+    def _step_compacted(
+        self,
+        state: SceneState,
+        control: Tensor | None,
+        force: Tensor | None,
+        friction: Tensor | None,
+    ) -> tuple[Solution, Tensor, SlotGeometry]:
+        """Assemble and solve on the candidate slots (step 2 of the class docstring), scatter
+        back.
 
         Returns:
-            The solution with ``(*B, K)`` slot fields, and the ``(*B,)`` solver codes.
+            The solution with ``(*B, K)`` slot fields, the ``(*B,)`` solver codes and the
+            slot geometry of the ``K`` slots.
         """
-        batch = problem.batch_shape
-        flat = problem.flatten()
-        mask = flat.slot_mask
-        B, K = mask.shape
+        batch, K, h = state.batch_shape, self.scene.num_slots, self.scene.h
+        P, Nd, Nk = math.prod(batch), len(self.scene.dynamic), len(self.scene.kinematic)
+
+        def flat(t: Tensor | None) -> Tensor | None:
+            return None if t is None else t.reshape(P, *t.shape[len(batch) :])
+
+        q, q_kinematic = state.q.reshape(P, Nd, 3), state.q_kinematic.reshape(P, Nk, 3)
+        slots = slot_state(self.scene, q, q_kinematic, flat(control))
+        geometry = slots.geometry
+        mask = geometry.active
         # Candidates first (in slot order), then the non-candidates by decreasing velocity
         # scale, so that the slot that sets the solvers' tolerance scale stays in.
-        scale = torch.maximum(flat.phi.detach().abs() / flat.h, flat.b_normal.detach().abs())
+        scale = torch.maximum(geometry.phi.detach().abs() / h, slots.known[..., 0].detach().abs())
         order = torch.argsort(
             torch.where(mask, math.inf, scale), dim=-1, descending=True, stable=True
         )
-        width = min(K, int(mask.sum(-1).max()) + 1) if B else 0
-        keep = order[:, :width]  # (B, W)
-
-        def gather(t: Tensor) -> Tensor:
-            index = keep.view(B, width, *([1] * (t.dim() - 2)))
-            return t.gather(1, index.expand(B, width, *t.shape[2:]))
-
-        compact = ContactProblem.unchecked(
-            M=flat.M,
-            v=flat.v,
-            f=flat.f,
-            Jn=gather(flat.Jn),
-            Jt=gather(flat.Jt),
-            phi=gather(flat.phi),
-            mu=gather(flat.mu),
-            h=flat.h,
-            mask=gather(mask),
-            bn=gather(flat.b_normal),
-            bt=gather(flat.b_tangent),
+        width = min(K, int(mask.sum(-1).max()) + 1) if P else 0
+        keep = order[:, :width]  # (P, W)
+        problem = assemble(
+            self.scene,
+            slots,
+            state.v.reshape(P, Nd, 3),
+            keep,
+            force=flat(force),
+            friction=flat(friction),
         )
-        solution, solver = self._solve(compact, gather(guess.reshape(B, K)))
+        guess = state.mode.reshape(P, K).gather(1, keep)
+        solution, solver = self._solve(problem, guess)
 
         def scatter(t: Tensor) -> Tensor:
-            index = keep.view(B, width, *([1] * (t.dim() - 2))).expand(t.shape)
-            return t.new_zeros(B, K, *t.shape[2:]).scatter(1, index, t)
+            index = keep.view(P, width, *([1] * (t.dim() - 2))).expand(t.shape)
+            full = t.new_zeros(P, K, *t.shape[2:]).scatter(1, index, t)
+            return full.reshape(*batch, *full.shape[1:])
 
         full = replace(
-            solution, pn=scatter(solution.pn), pt=scatter(solution.pt), mode=scatter(solution.mode)
+            solution,
+            v_next=solution.v_next.reshape(*batch, 3 * Nd),
+            pn=scatter(solution.pn),
+            pt=scatter(solution.pt),
+            mode=scatter(solution.mode),
+            status=solution.status.map_tensors(lambda t: t.reshape(batch)),
         )
-        return full.map_tensors(lambda t: t.reshape((*batch, *t.shape[1:]))), solver.reshape(batch)
+        geometry = SlotGeometry(
+            points=geometry.points.reshape(*batch, K, 2),
+            normals=geometry.normals.reshape(*batch, K, 2),
+            phi=geometry.phi.reshape(*batch, K),
+            active=mask.reshape(*batch, K),
+        )
+        return full, solver.reshape(batch), geometry
 
     def _solve(self, problem: ContactProblem, guess: Tensor) -> tuple[Solution, Tensor]:
         """Mode guess first, exact fallback for the failing entries; see the class docstring.
