@@ -12,7 +12,13 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from torchcontact.geometry import HalfPlane, PlanarSlotTable, planar_slot_table, planar_slots
+from torchcontact.geometry import (
+    HalfPlane,
+    PlanarSlotTable,
+    dot2,
+    planar_slot_table,
+    planar_slots,
+)
 from torchcontact.sim import Scene
 
 #: State size: pose and twist.
@@ -201,9 +207,9 @@ def slot_rows(
         frames_value = frames[..., :1, :, :, :]
         frames_tangent = frames * layout.tangent_mask
         arm_value = arm[..., :1, :, :, :]
-        moments = torch.addcmul(frames_value * arm, frames_tangent, arm_value).sum(-1)
+        moments = dot2(frames_value, arm) + dot2(frames_tangent, arm_value)
     else:
-        moments = (frames * arm).sum(-1)  # r · n, r · t
+        moments = dot2(frames, arm)  # r · n, r · t
     if q_kinematic.shape[-2]:
         # Point velocities of the slots' kinematic bodies (a group without one has sign 0).
         body = torch.cat([q_kinematic, v_kinematic], dim=-1).index_select(
@@ -215,11 +221,9 @@ def slot_rows(
         spun = (points - body[..., :2]).flip(-1) * turn
         velocity = torch.addcmul(body[..., 3:5], body[..., 5:], spun).unsqueeze(-2)
         if tangents:
-            known = torch.addcmul(
-                frames_value * velocity, frames_tangent, velocity[..., :1, :, :, :]
-            ).sum(-1)
+            known = dot2(frames_value, velocity) + dot2(frames_tangent, velocity[..., :1, :, :, :])
         else:
-            known = (frames * velocity).sum(-1)  # (*P, S, 2): along n, t
+            known = dot2(frames, velocity)  # (*P, S, 2): along n, t
     else:
         known = torch.zeros_like(moments)
     features = torch.cat(

@@ -13,6 +13,7 @@ from torchcontact.geometry._quaternion import (
 )
 from torchcontact.geometry._se2 import (
     cross2,
+    dot2,
     perpendicular,
     point_velocity,
     rotation_matrix,
@@ -36,6 +37,7 @@ __all__ = [
     "Polygon",
     "SlotGeometry",
     "cross2",
+    "dot2",
     "perpendicular",
     "planar_slot_table",
     "planar_slots",

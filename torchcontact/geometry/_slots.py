@@ -16,10 +16,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, fields, replace
+from typing import Any
 
 import torch
 from torch import Tensor
 
+from torchcontact.geometry._se2 import dot2
 from torchcontact.geometry._shapes import HalfPlane, Polygon
 
 #: Relative tolerance (of the longest edge) within which two edges are equally close.
@@ -105,7 +107,7 @@ class PlanarSlotTable:
         self, *, dtype: torch.dtype, device: torch.device | str | None = None
     ) -> PlanarSlotTable:
         """The table with its float tensors in ``dtype`` and every tensor on ``device``."""
-        converted = {}
+        converted: dict[str, Any] = {}
         for item in fields(self):
             value = getattr(self, item.name)
             if isinstance(value, Tensor):
@@ -268,17 +270,16 @@ def planar_slots(
     index = closest.expand(*closest.shape[:-1], 2)  # (*B, G, V, 2)
     direction = (directions[..., 0, :, :, :] if stacked else directions).gather(-2, index)
     lengthwise = table.edge_offset[..., V:].expand(*closest.shape[:-1], V).gather(-1, closest)
-    along = (relative_value * direction).sum(-1, keepdim=True) - lengthwise
+    along = dot2(relative_value, direction).unsqueeze(-1) - lengthwise
     reach = table.edge_reach.expand(*closest.shape[:-1], V).gather(-1, closest)
     active = (along >= -table.margin) & (along <= reach) & (phi <= table.margin)  # (*B, G, V, 1)
     if stacked:
         normal = normals.gather(-2, index.unsqueeze(-4).expand(normals.shape))
         # φ's derivative: that of the closest edge's distance (the one whose normal it takes).
-        turning = torch.addcmul(
-            relative[..., 1:, :, :, :] * normal[..., :1, :, :, :],
-            relative_value.unsqueeze(-4),
-            normal[..., 1:, :, :, :],
-        ).sum(-1, keepdim=True)
+        turning = dot2(relative[..., 1:, :, :, :], normal[..., :1, :, :, :]) + dot2(
+            relative_value.unsqueeze(-4), normal[..., 1:, :, :, :]
+        )
+        turning = turning.unsqueeze(-1)
         phi = torch.cat([phi.unsqueeze(-4), turning], dim=-4)  # (*B, D, G, V, 1)
     else:
         normal = normals.gather(-2, index)  # (*B, G, V, 2)

@@ -16,6 +16,7 @@ from torchcontact.geometry import (
     Polygon,
     SlotGeometry,
     cross2,
+    dot2,
     planar_slot_table,
     planar_slots,
 )
@@ -220,20 +221,24 @@ def dynamic_rows(
     Returns:
         ``(P, W, F, 3 Nd)`` rows.
     """
-    Nd = layout.num_dynamic
-    # Blocks scatter into 3 (Nd + 1) columns: a member that is not dynamic goes to the last
-    # block, which is dropped.
-    rows = points.new_zeros(*directions.shape[:-1], 3 * (Nd + 1))
-    members = [(layout.slots.slot_receiver, layout.receiver_column, 1.0)]
+    members = [(layout.slots.slot_receiver, layout.receiver_column, 1)]
     if layout.mutual:
-        members.append((layout.slots.slot_other, layout.other_column, -1.0))
+        members.append((layout.slots.slot_other, layout.other_column, -1))
+    wrenches, columns = [], []
     for shape, column, sign in members:
         arm = (points - _pick(poses, shape[slots])[..., :2]).unsqueeze(-2)  # (P, W, 1, 2)
         wrench = torch.cat([directions, cross2(arm, directions).unsqueeze(-1)], dim=-1)
-        first = 3 * column[slots][..., None, None]  # (P, W, 1, 1)
-        index = (first + torch.arange(3, device=first.device)).expand(wrench.shape)
-        rows = rows.scatter(-1, index, sign * wrench)
-    return rows[..., : 3 * Nd]
+        wrenches.append(wrench if sign > 0 else -wrench)
+        columns.append(column[slots][..., None, None])  # (P, W, 1, 1)
+    # One block of three columns per dynamic body: the wrenches of the slots' members that
+    # are that body.
+    blocks = []
+    for body in range(layout.num_dynamic):
+        block = torch.where(columns[0] == body, wrenches[0], 0.0)
+        for wrench, column in zip(wrenches[1:], columns[1:], strict=True):
+            block = block + torch.where(column == body, wrench, 0.0)
+        blocks.append(block)
+    return torch.cat(blocks, dim=-1)
 
 
 def known_velocities(
@@ -264,7 +269,7 @@ def known_velocities(
             arm = points - poses.index_select(-2, shape)[..., :2]
             spun = arm.flip(-1) * slots.turn
             velocity = torch.addcmul(twist[..., :2], twist[..., 2:], spun)
-            known = known + sign * (frames * velocity.unsqueeze(-2)).sum(-1)
+            known = known + sign * dot2(frames, velocity.unsqueeze(-2))
     return known
 
 
@@ -325,9 +330,11 @@ def assemble(
     layout, geometry = slots.layout, slots.geometry
     P, dtype, device = v.shape[0], v.dtype, v.device
 
+    K, W = slots.geometry.phi.shape[-1], keep.shape[-1]
+    rows_of = (keep + K * torch.arange(P, device=device)[:, None]).flatten()
+
     def gather(t: Tensor) -> Tensor:  # (P, K, ...) -> (P, W, ...)
-        index = keep.view(*keep.shape, *([1] * (t.dim() - 2)))
-        return t.gather(1, index.expand(*keep.shape, *t.shape[2:]))
+        return t.reshape(P * K, *t.shape[2:]).index_select(0, rows_of).view(P, W, *t.shape[2:])
 
     frames = gather(slots.frames)
     rows = dynamic_rows(layout, slots.poses, gather(geometry.points), frames, keep)
