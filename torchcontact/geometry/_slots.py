@@ -21,7 +21,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcontact.geometry._se2 import dot2
+from torchcontact.geometry._se2 import cross2, dot2
 from torchcontact.geometry._shapes import HalfPlane, Polygon
 
 #: Relative tolerance (of the longest edge) within which two edges are equally close.
@@ -63,12 +63,12 @@ class PlanarSlotTable:
     runs from vertex ``e`` to vertex ``e + 1``.
 
     Attributes:
-        frame: ``(Ns, 3V + 1, 2)`` body-frame rows of every shape: vertices, outward edge
-            normals, edge directions (the normals turned by +90°) and the origin (zero).
-        frame_turned: ``(Ns, 3V + 1, 2)`` the same rows turned by +90°, so that a shape at
+        frame: ``(Ns, 2V + 1, 2)`` body-frame rows of every shape: vertices, outward edge
+            normals and the origin (zero). An edge's direction is its normal turned by +90°.
+        frame_turned: ``(Ns, 2V + 1, 2)`` the same rows turned by +90°, so that a shape at
             angle ``θ`` has the rows ``cos θ · frame + sin θ · frame_turned``.
-        translated: ``(3V + 1, 1)`` 1 on the rows that move with the shape's position (the
-            vertices and the origin), 0 on the normals and directions.
+        translated: ``(2V + 1, 1)`` 1 on the rows that move with the shape's position (the
+            vertices and the origin), 0 on the normals.
         group_shapes: ``(2G,)`` shape index of each group's receiver, then of its other shape.
         edge_offset: ``(G, 1, 2V)`` ``a_e · n_e`` and ``a_e · d_e`` of the other shape's edges
             in its body frame (``a_e`` the edge's first vertex).
@@ -154,14 +154,14 @@ def planar_slot_table(
     V = max(s.num_vertices for s in shapes if isinstance(s, Polygon))
     Ns = len(shapes)
     turn = torch.tensor([-1.0, 1.0], dtype=f64)
-    frame = torch.zeros(Ns, 3 * V + 1, 2, dtype=f64)
+    frame = torch.zeros(Ns, 2 * V + 1, 2, dtype=f64)
     edge_offset = torch.full((Ns, 2 * V), _FAR, dtype=f64)
     facing_offset = torch.zeros(Ns, V, dtype=f64)
     edge_length = torch.zeros(Ns, V, dtype=f64)
     for s, shape in enumerate(shapes):
         if isinstance(shape, HalfPlane):  # one edge, everywhere within reach
             normal = shape.normal.to(f64)
-            frame[s, V], frame[s, 2 * V] = normal, normal.flip(-1) * turn
+            frame[s, V] = normal
             edge_offset[s, 0], edge_offset[s, V] = shape.point.to(f64) @ normal, -_FAR
             edge_length[s, 0] = torch.inf
             continue
@@ -172,12 +172,12 @@ def planar_slot_table(
         direction = edge / length.unsqueeze(-1)
         outward = torch.stack([direction[:, 1], -direction[:, 0]], dim=-1)
         frame[s, :n], frame[s, n:V] = local, local[0]
-        frame[s, V : V + n], frame[s, 2 * V : 2 * V + n] = outward, direction
+        frame[s, V : V + n] = outward
         edge_offset[s, :n] = (local * outward).sum(-1)
         edge_offset[s, V : V + n] = (local * direction).sum(-1)
         facing_offset[s, :n] = ((local - local.mean(dim=0)) * outward).sum(-1)
         edge_length[s, :n] = length
-    translated = torch.zeros(3 * V + 1, 1, dtype=f64)
+    translated = torch.zeros(2 * V + 1, 1, dtype=f64)
     translated[:V] = translated[-1] = 1.0
 
     receivers = [pair[0] for pair in groups]
@@ -243,7 +243,7 @@ def planar_slots(
     G, V = table.facing_offset.shape[0], table.facing_offset.shape[-1]
     angle = poses[..., 2, None, None]
     rotated = table.frame * torch.cos(angle) + table.frame_turned * torch.sin(angle)
-    world = torch.addcmul(rotated, table.translated, poses[..., None, :2])  # (*B, Ns, 3V+1, 2)
+    world = torch.addcmul(rotated, table.translated, poses[..., None, :2])  # (*B, Ns, 2V+1, 2)
     if pose_tangents is not None:
         # The rows' derivatives: translated rows move with (x, y), every row turns with θ.
         turned = rotated.flip(-1) * table.turn
@@ -251,12 +251,12 @@ def planar_slots(
             turned.unsqueeze(-4) * pose_tangents[..., 2, None, None],
             table.translated,
             pose_tangents[..., None, :2],
-        )  # (*B, T, Ns, 3V+1, 2)
+        )  # (*B, T, Ns, 2V+1, 2)
         world = torch.cat([world.unsqueeze(-4), moving], dim=-4)
     shapes = world.index_select(-3, table.group_shapes)
     points, other = shapes[..., :G, :V, :], shapes[..., G:, :, :]  # (*B, [D,] G, ·, 2)
-    normals, directions = other[..., V : 2 * V, :], other[..., 2 * V : 3 * V, :]
-    relative = points - other[..., 3 * V :, :]  # (*B, [D,] G, V, 2)
+    normals = other[..., V : 2 * V, :]
+    relative = points - other[..., 2 * V :, :]  # (*B, [D,] G, V, 2)
     stacked = pose_tangents is not None
     relative_value = relative[..., 0, :, :, :] if stacked else relative
     # Signed distances of every vertex to every edge: (*B, G, V, V).
@@ -266,23 +266,23 @@ def planar_slots(
     tie = distance >= phi - table.tie_tolerance
     closest = torch.where(tie, distance + table.facing_offset, -_FAR).argmax(-1, keepdim=True)
     # The closest edge: its outward normal is the slot's normal; the vertex must project onto
-    # it within the margin.
+    # it within the margin (along its direction d = n turned by +90°: r · d = n × r).
     index = closest.expand(*closest.shape[:-1], 2)  # (*B, G, V, 2)
-    direction = (directions[..., 0, :, :, :] if stacked else directions).gather(-2, index)
+    if stacked:
+        normal = normals.gather(-2, index.unsqueeze(-4).expand(normals.shape))
+        normal_value = normal[..., 0, :, :, :]
+    else:
+        normal = normal_value = normals.gather(-2, index)  # (*B, G, V, 2)
     lengthwise = table.edge_offset[..., V:].expand(*closest.shape[:-1], V).gather(-1, closest)
-    along = dot2(relative_value, direction).unsqueeze(-1) - lengthwise
+    along = cross2(normal_value, relative_value).unsqueeze(-1) - lengthwise
     reach = table.edge_reach.expand(*closest.shape[:-1], V).gather(-1, closest)
     active = (along >= -table.margin) & (along <= reach) & (phi <= table.margin)  # (*B, G, V, 1)
     if stacked:
-        normal = normals.gather(-2, index.unsqueeze(-4).expand(normals.shape))
         # φ's derivative: that of the closest edge's distance (the one whose normal it takes).
         turning = dot2(relative[..., 1:, :, :, :], normal[..., :1, :, :, :]) + dot2(
             relative_value.unsqueeze(-4), normal[..., 1:, :, :, :]
         )
-        turning = turning.unsqueeze(-1)
-        phi = torch.cat([phi.unsqueeze(-4), turning], dim=-4)  # (*B, D, G, V, 1)
-    else:
-        normal = normals.gather(-2, index)  # (*B, G, V, 2)
+        phi = torch.cat([phi.unsqueeze(-4), turning.unsqueeze(-1)], dim=-4)  # (*B, D, G, V, 1)
     source = table.slot_source
     return SlotGeometry(
         points=points.flatten(-3, -2).index_select(-2, source),
