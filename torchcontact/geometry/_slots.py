@@ -32,15 +32,16 @@ _FAR = 1e30
 
 @dataclass(frozen=True, eq=False)
 class SlotGeometry:
-    """Contact slots: vertices of receiving shapes against the closest edge of other shapes.
+    """Contact slots: features of receiving shapes against the closest feature of other shapes
+    (planar: vertices against edges), in ``d`` dimensions (``d = 2`` planar).
 
     With forward tangents (:func:`planar_slots`' ``pose_tangents``), ``points``, ``normals``
     and ``phi`` hold a stacked dimension ``1 + T`` after the batch: the values, then their
     derivatives along the ``T`` pose directions.
 
     Attributes:
-        points: ``(*B, S, 2)`` contact points (the receiving shapes' vertices), world frame.
-        normals: ``(*B, S, 2)`` unit contact normals pointing from the other shape into the
+        points: ``(*B, S, d)`` contact points (the receiving shapes' vertices), world frame.
+        normals: ``(*B, S, d)`` unit contact normals pointing from the other shape into the
             receiving one, world frame.
         phi: ``(*B, S)`` signed gaps along the normals (negative when penetrating), metres.
         active: ``(*B, S)`` bool: the slot is a contact candidate (gap ≤ margin, and the
