@@ -168,10 +168,9 @@ def planar_slot_table(
             continue
         local = shape.vertices.to(f64)
         n = len(local)
-        edge = local.roll(-1, dims=0) - local
-        length = edge.norm(dim=-1)
-        direction = edge / length.unsqueeze(-1)
-        outward = torch.stack([direction[:, 1], -direction[:, 0]], dim=-1)
+        length = (local.roll(-1, dims=0) - local).norm(dim=-1)
+        outward = shape.edge_normals().to(f64)
+        direction = outward.flip(-1) * turn
         frame[s, :n], frame[s, n:V] = local, local[0]
         frame[s, V : V + n] = outward
         edge_offset[s, :n] = (local * outward).sum(-1)
