@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, replace
+from typing import get_args
 
 import torch
 from torch import Tensor
@@ -24,9 +25,6 @@ from torchcontact.geometry import SlotGeometry
 from torchcontact.sim._assemble import assemble, slot_state
 from torchcontact.sim._scene import Scene
 from torchcontact.sim._state import SceneState
-
-#: The exact solvers a :class:`Simulator` can fall back on.
-_METHODS = ("lemke", "qp", "pgs")
 
 #: ``StepResult.solver`` codes.
 SOLVED_BY_GUESS = 0
@@ -142,9 +140,10 @@ class Simulator:
     def __post_init__(self) -> None:
         if not isinstance(self.scene, Scene):
             raise ValueError(f"scene must be a Scene, got {type(self.scene).__name__}")
-        if not isinstance(self.fallback, tuple) or not all(m in _METHODS for m in self.fallback):
+        methods = get_args(Method)
+        if not isinstance(self.fallback, tuple) or not all(m in methods for m in self.fallback):
             raise ValueError(
-                f"fallback must be a tuple of methods among {_METHODS}, got {self.fallback!r}"
+                f"fallback must be a tuple of methods among {methods}, got {self.fallback!r}"
             )
         check_int("active_set_iterations", self.active_set_iterations, low=0)
         if not isinstance(self.retry_sticking, bool):
