@@ -207,7 +207,7 @@ def slot_rows(
         frames_value = frames[..., :1, :, :, :]
         frames_tangent = frames * layout.tangent_mask
         arm_value = arm[..., :1, :, :, :]
-        moments = dot2(frames_value, arm) + dot2(frames_tangent, arm_value)
+        moments = dot2(frames_value, arm, frames_tangent, arm_value)
     else:
         moments = dot2(frames, arm)  # r · n, r · t
     if q_kinematic.shape[-2]:
@@ -221,7 +221,7 @@ def slot_rows(
         spun = (points - body[..., :2]).flip(-1) * turn
         velocity = torch.addcmul(body[..., 3:5], body[..., 5:], spun).unsqueeze(-2)
         if tangents:
-            known = dot2(frames_value, velocity) + dot2(frames_tangent, velocity[..., :1, :, :, :])
+            known = dot2(frames_value, velocity, frames_tangent, velocity[..., :1, :, :, :])
         else:
             known = dot2(frames, velocity)  # (*P, S, 2): along n, t
     else:

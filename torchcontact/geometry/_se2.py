@@ -47,12 +47,16 @@ def cross2(a: Tensor, b: Tensor) -> Tensor:
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
-def dot2(a: Tensor, b: Tensor) -> Tensor:
-    """Planar dot product ``a_x b_x + a_y b_y`` over the last dimension (size 2).
+def dot2(a: Tensor, b: Tensor, c: Tensor | None = None, d: Tensor | None = None) -> Tensor:
+    """Planar dot products over the last dimension (size 2): ``a · b``, or ``a · b + c · d``.
 
-    Elementwise: faster on the CPU than a reduction over a last dimension of two.
+    Component by component (``a_x b_x + a_y b_y``): on the CPU, faster than a reduction over a
+    last dimension of two, or than a product of the broadcast pairs.
     """
-    return torch.addcmul(a[..., 0] * b[..., 0], a[..., 1], b[..., 1])
+    total = torch.addcmul(a[..., 0] * b[..., 0], a[..., 1], b[..., 1])
+    if c is None or d is None:
+        return total
+    return torch.addcmul(torch.addcmul(total, c[..., 0], d[..., 0]), c[..., 1], d[..., 1])
 
 
 def perpendicular(u: Tensor) -> Tensor:

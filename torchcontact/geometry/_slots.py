@@ -279,8 +279,11 @@ def planar_slots(
     active = (along >= -table.margin) & (along <= reach) & (phi <= table.margin)  # (*B, G, V, 1)
     if stacked:
         # φ's derivative: that of the closest edge's distance (the one whose normal it takes).
-        turning = dot2(relative[..., 1:, :, :, :], normal[..., :1, :, :, :]) + dot2(
-            relative_value.unsqueeze(-4), normal[..., 1:, :, :, :]
+        turning = dot2(
+            relative[..., 1:, :, :, :],
+            normal[..., :1, :, :, :],
+            relative_value.unsqueeze(-4),
+            normal[..., 1:, :, :, :],
         )
         phi = torch.cat([phi.unsqueeze(-4), turning.unsqueeze(-1)], dim=-4)  # (*B, D, G, V, 1)
     source = table.slot_source
