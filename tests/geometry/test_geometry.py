@@ -95,8 +95,16 @@ def _slots_by_loop(
     return slots
 
 
+#: Slot groups of :func:`_random_scene`: every pair, and the pentagon against the others only
+#: (its five vertices, but at most four edges to test against).
+GROUPS = {
+    "all": [(0, 1), (1, 0), (0, 2), (2, 0), (1, 2), (2, 1), (0, 3), (1, 3), (2, 3)],
+    "fewer edges": [(2, 0), (2, 1), (2, 3)],
+}
+
+
 def _random_scene(
-    seed: int,
+    seed: int, groups: str = "all"
 ) -> tuple[list[Polygon | HalfPlane], torch.Tensor, list[tuple[int, int]]]:
     """A box, a triangle, a pentagon and a tilted ground, at random nearby poses."""
     shapes: list[Polygon | HalfPlane] = [
@@ -109,18 +117,18 @@ def _random_scene(
     poses = torch.zeros(64, 4, 3, dtype=torch.float64)
     poses[:, :3, :2] = 0.3 * torch.rand(64, 3, 2, generator=gen, dtype=torch.float64)
     poses[:, :3, 2] = 2 * math.pi * torch.rand(64, 3, generator=gen, dtype=torch.float64)
-    groups = [(0, 1), (1, 0), (0, 2), (2, 0), (1, 2), (2, 1), (0, 3), (1, 3), (2, 3)]
-    return shapes, poses, groups
+    return shapes, poses, GROUPS[groups]
 
 
-def test_planar_slots_match_a_vertex_by_vertex_loop() -> None:
-    shapes, poses, groups = _random_scene(0)
-    table = planar_slot_table(shapes, groups, margin=0.05)
+@pytest.mark.parametrize("groups", GROUPS)
+def test_planar_slots_match_a_vertex_by_vertex_loop(groups: str) -> None:
+    shapes, poses, pairs = _random_scene(0, groups)
+    table = planar_slot_table(shapes, pairs, margin=0.05)
     slots = planar_slots(table, poses)
-    assert slots.phi.shape == (64, table.num_slots) == (64, 3 * (4 + 3 + 5))
+    assert slots.phi.shape == (64, table.num_slots)
     seen_active = 0
     for b in range(poses.shape[0]):
-        expected = _slots_by_loop(shapes, [tuple(p) for p in poses[b].tolist()], groups, 0.05)
+        expected = _slots_by_loop(shapes, [tuple(p) for p in poses[b].tolist()], pairs, 0.05)
         points, normals, phi, active = zip(*expected, strict=True)
         torch.testing.assert_close(slots.points[b], torch.tensor(points, dtype=torch.float64))
         torch.testing.assert_close(slots.normals[b], torch.tensor(normals, dtype=torch.float64))
@@ -128,7 +136,7 @@ def test_planar_slots_match_a_vertex_by_vertex_loop() -> None:
         # A candidate test within round-off of its bound may go either way.
         assert slots.active[b].tolist() == list(active)
         seen_active += sum(active)
-    assert seen_active > 50
+    assert seen_active > 20
 
 
 def test_planar_slots_in_float32_match_float64() -> None:
@@ -142,10 +150,11 @@ def test_planar_slots_in_float32_match_float64() -> None:
     assert float((narrow.active == wide.active).double().mean()) > 0.99
 
 
-def test_planar_slot_tangents_match_automatic_differentiation() -> None:
-    """Derivatives along random pose directions against ``jacfwd``, away from edge ties."""
-    shapes, poses, groups = _random_scene(2)
-    table = planar_slot_table(shapes, groups, margin=0.05)
+@pytest.mark.parametrize("groups", GROUPS)
+def test_planar_slot_tangents_match_automatic_differentiation(groups: str) -> None:
+    """Derivatives along random pose directions against ``jacfwd``."""
+    shapes, poses, pairs = _random_scene(2, groups)
+    table = planar_slot_table(shapes, pairs, margin=0.05)
     gen = torch.Generator().manual_seed(3)
     directions = torch.randn(64, 2, 4, 3, generator=gen, dtype=torch.float64)
     directions[..., 3, :] = 0.0  # the ground stays

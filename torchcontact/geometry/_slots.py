@@ -58,23 +58,24 @@ class SlotGeometry:
 class PlanarSlotTable:
     """Body-frame tables of ``Ns`` planar shapes and ``G`` slot groups between them.
 
-    Shapes are padded to ``V`` edges: a polygon's padding vertices repeat its first vertex and
-    its padding edges have zero normal and direction and lie ``_FAR`` away; a half-plane is a
-    single edge of unbounded length, its rows being world rows at the zero pose. Edge ``e``
-    runs from vertex ``e`` to vertex ``e + 1``.
+    Shapes are padded to ``V`` vertices (the most of any polygon) and ``E`` edges (the most of
+    any shape that is some group's other shape; a half-plane has one): a polygon's padding
+    vertices repeat its first vertex and its padding edges have zero normal and lie ``_FAR``
+    away; a half-plane is a single edge of unbounded length, its rows being world rows at the
+    zero pose. Edge ``e`` runs from vertex ``e`` to vertex ``e + 1``.
 
     Attributes:
-        frame: ``(Ns, 2V + 1, 2)`` body-frame rows of every shape: vertices, outward edge
+        frame: ``(Ns, V + E + 1, 2)`` body-frame rows of every shape: vertices, outward edge
             normals and the origin (zero). An edge's direction is its normal turned by +90°.
-        frame_turned: ``(Ns, 2V + 1, 2)`` the same rows turned by +90°, so that a shape at
+        frame_turned: ``(Ns, V + E + 1, 2)`` the same rows turned by +90°, so that a shape at
             angle ``θ`` has the rows ``cos θ · frame + sin θ · frame_turned``.
-        translated: ``(2V + 1, 1)`` 1 on the rows that move with the shape's position (the
+        translated: ``(V + E + 1, 1)`` 1 on the rows that move with the shape's position (the
             vertices and the origin), 0 on the normals.
         group_shapes: ``(2G,)`` shape index of each group's receiver, then of its other shape.
-        edge_offset: ``(G, 1, 2V)`` ``a_e · n_e`` and ``a_e · d_e`` of the other shape's edges
+        edge_offset: ``(G, 1, 2E)`` ``a_e · n_e`` and ``a_e · d_e`` of the other shape's edges
             in its body frame (``a_e`` the edge's first vertex).
-        facing_offset: ``(G, 1, V)`` ``(a_e − c) · n_e``, ``c`` the other shape's vertex mean.
-        edge_reach: ``(G, 1, V)`` the other shape's edge lengths plus the margin.
+        facing_offset: ``(G, 1, E)`` ``(a_e − c) · n_e``, ``c`` the other shape's vertex mean.
+        edge_reach: ``(G, 1, E)`` the other shape's edge lengths plus the margin.
         tie_tolerance: ``(G, 1, 1)`` absolute tolerance of equally close edges
             (``TIE_TOLERANCE`` times the other shape's longest edge; 0 for a half-plane).
         slot_source: ``(S,)`` long: each slot's index among the groups' ``G·V`` padded
@@ -153,31 +154,35 @@ def planar_slot_table(
         raise ValueError(f"margin must be a real >= 0, got {margin!r}")
     f64 = torch.float64
     V = max(s.num_vertices for s in shapes if isinstance(s, Polygon))
+    edges = [s.num_vertices if isinstance(s, Polygon) else 1 for s in shapes]
+    E = max((edges[other] for _, other in groups), default=1)
     Ns = len(shapes)
     turn = torch.tensor([-1.0, 1.0], dtype=f64)
-    frame = torch.zeros(Ns, 2 * V + 1, 2, dtype=f64)
-    edge_offset = torch.full((Ns, 2 * V), _FAR, dtype=f64)
-    facing_offset = torch.zeros(Ns, V, dtype=f64)
-    edge_length = torch.zeros(Ns, V, dtype=f64)
+    frame = torch.zeros(Ns, V + E + 1, 2, dtype=f64)
+    edge_offset = torch.full((Ns, 2 * E), _FAR, dtype=f64)
+    facing_offset = torch.zeros(Ns, E, dtype=f64)
+    edge_length = torch.zeros(Ns, E, dtype=f64)
     for s, shape in enumerate(shapes):
         if isinstance(shape, HalfPlane):  # one edge, everywhere within reach
             normal = shape.normal.to(f64)
             frame[s, V] = normal
-            edge_offset[s, 0], edge_offset[s, V] = shape.point.to(f64) @ normal, -_FAR
+            edge_offset[s, 0], edge_offset[s, E] = shape.point.to(f64) @ normal, -_FAR
             edge_length[s, 0] = torch.inf
             continue
         local = shape.vertices.to(f64)
         n = len(local)
-        length = (local.roll(-1, dims=0) - local).norm(dim=-1)
-        outward = shape.edge_normals().to(f64)
-        direction = outward.flip(-1) * turn
         frame[s, :n], frame[s, n:V] = local, local[0]
-        frame[s, V : V + n] = outward
-        edge_offset[s, :n] = (local * outward).sum(-1)
-        edge_offset[s, V : V + n] = (local * direction).sum(-1)
-        facing_offset[s, :n] = ((local - local.mean(dim=0)) * outward).sum(-1)
-        edge_length[s, :n] = length
-    translated = torch.zeros(2 * V + 1, 1, dtype=f64)
+        # The edges of a polygon that is no group's other shape are never used (E may be less).
+        m = min(n, E)
+        local, ahead = local[:m], local.roll(-1, dims=0)[:m]
+        outward = shape.edge_normals().to(f64)[:m]
+        direction = outward.flip(-1) * turn
+        frame[s, V : V + m] = outward
+        edge_offset[s, :m] = (local * outward).sum(-1)
+        edge_offset[s, E : E + m] = (local * direction).sum(-1)
+        facing_offset[s, :m] = ((local - shape.vertices.to(f64).mean(dim=0)) * outward).sum(-1)
+        edge_length[s, :m] = (ahead - local).norm(dim=-1)
+    translated = torch.zeros(V + E + 1, 1, dtype=f64)
     translated[:V] = translated[-1] = 1.0
 
     receivers = [pair[0] for pair in groups]
@@ -240,7 +245,8 @@ def planar_slots(
         ``(*B, 1 + T, S, 2)``, ``normals`` ``(*B, 1 + T, S, 2)`` and ``phi``
         ``(*B, 1 + T, S)`` hold the values, then their derivatives.
     """
-    G, V = table.facing_offset.shape[0], table.facing_offset.shape[-1]
+    G, E = table.facing_offset.shape[0], table.facing_offset.shape[-1]
+    V = table.frame.shape[-2] - E - 1
     angle = poses[..., 2, None, None]
     rotated = table.frame * torch.cos(angle) + table.frame_turned * torch.sin(angle)
     world = torch.addcmul(rotated, table.translated, poses[..., None, :2])  # (*B, Ns, 2V+1, 2)
@@ -255,13 +261,13 @@ def planar_slots(
         world = torch.cat([world.unsqueeze(-4), moving], dim=-4)
     shapes = world.index_select(-3, table.group_shapes)
     points, other = shapes[..., :G, :V, :], shapes[..., G:, :, :]  # (*B, [D,] G, ·, 2)
-    normals = other[..., V : 2 * V, :]
-    relative = points - other[..., 2 * V :, :]  # (*B, [D,] G, V, 2)
+    normals = other[..., V : V + E, :]
+    relative = points - other[..., V + E :, :]  # (*B, [D,] G, V, 2)
     stacked = pose_tangents is not None
     relative_value = relative[..., 0, :, :, :] if stacked else relative
-    # Signed distances of every vertex to every edge: (*B, G, V, V).
+    # Signed distances of every vertex to every edge: (*B, G, V, E).
     distance = _dot(relative_value, normals[..., 0, :, :, :] if stacked else normals)
-    distance = distance - table.edge_offset[..., :V]
+    distance = distance - table.edge_offset[..., :E]
     phi = distance.amax(dim=-1, keepdim=True)
     tie = distance >= phi - table.tie_tolerance
     closest = torch.where(tie, distance + table.facing_offset, -_FAR).argmax(-1, keepdim=True)
@@ -269,13 +275,13 @@ def planar_slots(
     # it within the margin (along its direction d = n turned by +90°: r · d = n × r).
     index = closest.expand(*closest.shape[:-1], 2)  # (*B, G, V, 2)
     if stacked:
-        normal = normals.gather(-2, index.unsqueeze(-4).expand(normals.shape))
+        normal = normals.gather(-2, index.unsqueeze(-4).expand(*normals.shape[:-2], V, 2))
         normal_value = normal[..., 0, :, :, :]
     else:
         normal = normal_value = normals.gather(-2, index)  # (*B, G, V, 2)
-    lengthwise = table.edge_offset[..., V:].expand(*closest.shape[:-1], V).gather(-1, closest)
+    lengthwise = table.edge_offset[..., E:].expand(*closest.shape[:-1], E).gather(-1, closest)
     along = cross2(normal_value, relative_value).unsqueeze(-1) - lengthwise
-    reach = table.edge_reach.expand(*closest.shape[:-1], V).gather(-1, closest)
+    reach = table.edge_reach.expand(*closest.shape[:-1], E).gather(-1, closest)
     active = (along >= -table.margin) & (along <= reach) & (phi <= table.margin)  # (*B, G, V, 1)
     if stacked:
         # φ's derivative: that of the closest edge's distance (the one whose normal it takes).
