@@ -94,14 +94,14 @@ class Simulator:
 
     Each step (semi-implicit Euler: ``q⁺ = q + h v⁺``, kinematic bodies ``q⁺ = q + h u``):
 
-    1. assemble the contact problem of every scene of the batch
-       (:func:`~torchcontact.sim.contact_problem`, all slot groups at once);
+    1. compute the slot geometry of every scene of the batch (all slot groups at once);
     2. keep, per scene, only its candidate slots (``geometry.active``), padded to the most
        candidates of any scene of the batch plus one by the non-candidates with the largest
        ``max(|φ| / h, |bn|)``: the solvers' tolerance scales are maxima of these over all
-       slots, so the slot that sets them is always kept. Non-candidate slots carry no
-       impulse, so the solution of this compacted problem, scattered back to the ``K`` slots,
-       is that of the full problem;
+       slots, so the slot that sets them is always kept; assemble the contact problem on
+       those slots (the rows :func:`~torchcontact.sim.contact_problem` gives them).
+       Non-candidate slots carry no impulse, so the solution of this compacted problem,
+       scattered back to the ``K`` slots, is that of the full problem;
     3. solve all of them with one :func:`~torchcontact.contact.solve_mode` at the previous
        step's modes (contact modes rarely change between steps), and correct the modes of
        the inconsistent ones by a few batched active-set iterations
