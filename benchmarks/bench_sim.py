@@ -1,7 +1,9 @@
 """Simulator throughput: batched planar boxes vs MuJoCo stepping one box, in one run.
 
 Boxes on the ground (four corner slots each), a third sliding, a third tipping over a corner,
-a third resting, stepped ``T`` times at B = 1, 64 and 1,024 scenes, one thread. MuJoCo (the
+a third resting, stepped ``T`` times at B = 1, 64 and 1,024 scenes, one thread, and the time of
+the contact problem's assembly alone (:func:`~torchcontact.sim.contact_problem`, every slot,
+best of several repetitions) at the same states. MuJoCo (the
 optional ``bench`` extra) steps one free box on a plane for the same number of steps; its
 steps per second on one core is the reference for the ratio. Prints a markdown table and writes
 ``benchmarks/results/bench_sim.json``.
@@ -21,7 +23,14 @@ from pathlib import Path
 import torch
 
 from torchcontact.geometry import HalfPlane, Polygon
-from torchcontact.sim import SOLVED_BY_GUESS, Body, Scene, SceneState, Simulator
+from torchcontact.sim import (
+    SOLVED_BY_GUESS,
+    Body,
+    Scene,
+    SceneState,
+    Simulator,
+    contact_problem,
+)
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_sim.json"
 MUJOCO_BOX = """
@@ -64,6 +73,21 @@ def time_torchcontact(sim: Simulator, count: int, steps: int) -> tuple[float, fl
     return seconds, float((run.solver == SOLVED_BY_GUESS).double().mean())
 
 
+def time_assembly(sim: Simulator, count: int, repeats: int) -> float:
+    """Milliseconds for one :func:`contact_problem` of ``count`` scenes, best of 5 runs of
+    ``repeats``."""
+    state = box_states(sim, count)
+    best = float("inf")
+    with torch.no_grad():
+        contact_problem(sim.scene, state)  # warm-up (builds the scene's tables)
+        for _ in range(5):
+            start = time.perf_counter()
+            for _ in range(repeats):
+                contact_problem(sim.scene, state)
+            best = min(best, (time.perf_counter() - start) / repeats)
+    return 1e3 * best
+
+
 def time_mujoco(steps: int) -> float | None:
     """Seconds for MuJoCo to step one sliding box ``steps`` times; ``None`` if not installed."""
     if importlib.util.find_spec("mujoco") is None:
@@ -102,12 +126,14 @@ def main() -> None:
     rows = []
     for count in sizes:
         seconds, fast = time_torchcontact(sim, count, steps)
+        assembly = time_assembly(sim, count, steps // 4)
         rate = count * steps / seconds
         rows.append(
             {
                 "B": count,
                 "box_steps_per_s": rate,
                 "ms_per_step": 1e3 * seconds / steps,
+                "assembly_ms": assembly,
                 "fast_path_share": fast,
                 "ratio_to_mujoco": None if mujoco_rate is None else rate / mujoco_rate,
             }
@@ -120,12 +146,13 @@ def main() -> None:
     else:
         print(f"MuJoCo one box on a plane: {mujoco_rate:,.0f} steps/s on one core")
     print()
-    print("| B | ms / step | box-steps / s | fast path | ratio to MuJoCo steps / s |")
-    print("|---:|---:|---:|---:|---:|")
+    print("| B | ms / step | assembly ms | box-steps / s | fast path | ratio to MuJoCo steps / s |")
+    print("|---:|---:|---:|---:|---:|---:|")
     for row in rows:
         ratio = "n/a" if row["ratio_to_mujoco"] is None else f"{row['ratio_to_mujoco']:.2f}×"
         print(
-            f"| {row['B']:,} | {row['ms_per_step']:.2f} | {row['box_steps_per_s']:,.0f} "
+            f"| {row['B']:,} | {row['ms_per_step']:.2f} | {row['assembly_ms']:.2f} "
+            f"| {row['box_steps_per_s']:,.0f} "
             f"| {100 * row['fast_path_share']:.0f}% | {ratio} |"
         )
     if not args.quick:

@@ -102,7 +102,6 @@ def test_bad_config_values_are_named(name: str, value: Any) -> None:
     [
         ({"observation": "pixels"}, "observation"),
         ({"render_mode": "human"}, "render_mode"),
-        ({"engine": "fast"}, "engine"),
         ({"config": {"h": 0.01}}, "config"),
     ],
 )

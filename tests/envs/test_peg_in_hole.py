@@ -21,12 +21,11 @@ from torchcontact.envs import (
     HELD_FREE,
     NUM_CONTACT_CLASSES,
     PEG_IN_HOLE_ID,
-    CompactSimulator,
     PegInHole2D,
     PegInHole2DVector,
     PegInHoleConfig,
 )
-from torchcontact.sim import UNSOLVED, StepResult
+from torchcontact.sim import UNSOLVED, Simulator, StepResult
 from torchcontact.states import ManipulationState
 
 STAY, RIGHT, LEFT, UP, DOWN, TURN_LEFT, TURN_RIGHT = range(7)
@@ -303,16 +302,6 @@ def test_info_reports_the_true_contacts_and_manipulation_state() -> None:
     assert len(np.unique(image.reshape(-1, 3), axis=0)) > 3
 
 
-def test_reference_engine_gives_the_same_episode() -> None:
-    actions = [RIGHT, RIGHT, DOWN, TURN_LEFT, STAY, LEFT, DOWN, DOWN]
-    poses = []
-    for engine in ("compact", "reference"):
-        env = PegInHole2D(engine=engine)  # type: ignore[arg-type]
-        env.reset(seed=5)
-        poses.append(np.stack([env.step(a)[4]["peg_pose"] for a in actions]))
-    np.testing.assert_allclose(poses[0], poses[1], atol=1e-9)
-
-
 def test_bad_arguments_raise_value_errors_naming_them() -> None:
     for field, value in [
         ("clearance", -0.001),
@@ -332,8 +321,6 @@ def test_bad_arguments_raise_value_errors_naming_them() -> None:
         PegInHole2D(render_mode="human")
     with pytest.raises(ValueError, match="config"):
         PegInHole2D(config={"clearance": 0.01})  # type: ignore[arg-type]
-    with pytest.raises(ValueError, match="engine"):
-        PegInHole2D(engine="mujoco")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="num_envs"):
         PegInHole2DVector(num_envs=0)
     env = PegInHole2D()
@@ -356,9 +343,9 @@ def test_a_failed_solve_ends_the_episode_as_dropped_with_clean_contacts(
     crash the contact report."""
     env = PegInHole2D()
     env.reset(seed=3)
-    solve = CompactSimulator.step
+    solve = Simulator.step
 
-    def failing(self: CompactSimulator, *args: Any, **kwargs: Any) -> StepResult:
+    def failing(self: Simulator, *args: Any, **kwargs: Any) -> StepResult:
         result = solve(self, *args, **kwargs)
         return replace(
             result,
@@ -367,7 +354,7 @@ def test_a_failed_solve_ends_the_episode_as_dropped_with_clean_contacts(
             residual=torch.full_like(result.residual, 1.0),
         )
 
-    monkeypatch.setattr(CompactSimulator, "step", failing)
+    monkeypatch.setattr(Simulator, "step", failing)
     _, reward, terminated, truncated, info = env.step(0)
     assert terminated
     assert not truncated

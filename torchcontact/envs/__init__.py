@@ -20,7 +20,6 @@ import gymnasium
 from torchcontact.envs._belief_filter import PegBelief, PegInHoleFilter
 from torchcontact.envs._belief_model import PegControl, PegInHoleBeliefModel
 from torchcontact.envs._config import PegInHoleConfig
-from torchcontact.envs._engine import CompactSimulator
 from torchcontact.envs._env import PegInHole2D
 from torchcontact.envs._observe import START_KEYS
 from torchcontact.envs._states import (
@@ -71,7 +70,6 @@ __all__ = [
     "NUM_CONTACT_CLASSES",
     "PEG_IN_HOLE_ID",
     "START_KEYS",
-    "CompactSimulator",
     "PegBelief",
     "PegControl",
     "PegInHole2D",

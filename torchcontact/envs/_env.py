@@ -23,7 +23,7 @@ from torchcontact.envs._observe import (
 )
 from torchcontact.envs._render import render_frame
 from torchcontact.envs._states import PegInHoleStates
-from torchcontact.envs._task import ACTION_NAMES, Engine, PegInHoleTask, Physics
+from torchcontact.envs._task import ACTION_NAMES, PegInHoleTask, Physics
 from torchcontact.states import ContactSet, ManipulationState, contact_states
 
 Observation = NDArray[np.float64] | dict[str, NDArray[Any]]
@@ -92,9 +92,6 @@ class PegInHole2D(gym.Env[Observation, Any]):
         config: the task configuration (default :class:`PegInHoleConfig()`).
         observation: ``"state"`` or ``"noisy"``.
         render_mode: ``None`` or ``"rgb_array"``.
-        engine: ``"compact"`` (default, :class:`~torchcontact.envs.CompactSimulator`) or
-            ``"reference"`` (:class:`torchcontact.sim.Simulator`, slower; see
-            :class:`PegInHoleTask`).
 
     Raises:
         ValueError: an argument is invalid (the message names it).
@@ -109,7 +106,6 @@ class PegInHole2D(gym.Env[Observation, Any]):
         config: PegInHoleConfig | None = None,
         observation: ObservationMode = "state",
         render_mode: str | None = None,
-        engine: Engine = "compact",
     ) -> None:
         config = PegInHoleConfig() if config is None else config
         if not isinstance(config, PegInHoleConfig):
@@ -121,7 +117,7 @@ class PegInHole2D(gym.Env[Observation, Any]):
         self.config = config
         self.observation_mode: ObservationMode = observation
         self.render_mode = render_mode
-        self.task = PegInHoleTask(config, engine=engine)
+        self.task = PegInHoleTask(config)
         self.action_space = spaces.Discrete(len(ACTION_NAMES))
         self.observation_space = observation_space(self.task, observation)
         self._physics: Physics | None = None

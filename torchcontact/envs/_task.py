@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Literal
 
 import numpy as np
 import torch
@@ -17,7 +16,6 @@ from numpy.typing import NDArray
 from torch import Tensor
 
 from torchcontact.envs._config import PegInHoleConfig
-from torchcontact.envs._engine import CompactSimulator
 from torchcontact.envs._states import PegInHoleStates
 from torchcontact.geometry import HalfPlane, Polygon, wrap_angle
 from torchcontact.sim import UNSOLVED, Body, Scene, SceneState, Simulator, StepResult
@@ -39,8 +37,6 @@ PEG, FINGER_LEFT, FINGER_RIGHT = 0, 1, 2
 #: Samples drawn per reset, in order: gripper x, peg-bottom height above the mouth, gripper
 #: angle, grasp offset (pads to peg centre), peg angle relative to the fingers.
 NUM_START_SAMPLES = 5
-
-Engine = Literal["compact", "reference"]
 
 #: LCP residual above which an unsolved simulator step counts as a failure. The exact solvers
 #: can stop short on degenerate grasps (four sticking pad contacts); the simulator then keeps
@@ -186,22 +182,14 @@ class PegInHoleTask:
 
     Args:
         config: the task configuration.
-        engine: ``"compact"`` steps with :class:`~torchcontact.envs.CompactSimulator`,
-            ``"reference"`` with :class:`torchcontact.sim.Simulator` (slower; the same steps
-            except where the simulator needs its QP fallback, which the compact stepper
-            replaces by a cheaper, verified retry).
     """
 
-    def __init__(self, config: PegInHoleConfig, *, engine: Engine = "compact") -> None:
+    def __init__(self, config: PegInHoleConfig) -> None:
         if not isinstance(config, PegInHoleConfig):
             raise ValueError(f"config must be a PegInHoleConfig, got {type(config).__name__}")
-        if engine not in ("compact", "reference"):
-            raise ValueError(f"engine must be 'compact' or 'reference', got {engine!r}")
         self.config = config
         self.scene, self.pad_offset = build_scene(config)
-        self.engine = engine
-        self._compact = CompactSimulator(self.scene)
-        self._reference = Simulator(self.scene)
+        self.simulator = Simulator(self.scene)
         finger = self.scene.bodies[self.scene.index("finger_left")]
         self.finger_inertia = float(finger.inertia_value())
         self.sensors: TactileArray = rectangle_sensors(
@@ -304,7 +292,7 @@ class PegInHoleTask:
             ],
             dim=-2,
         )
-        return self._reference.initial_state(q=q), gripper
+        return self.simulator.initial_state(q=q), gripper
 
     def reset(self, samples: Tensor) -> Physics:
         """Start a batch of environments and let the grasp settle (``settle_steps`` steps)."""
@@ -405,11 +393,8 @@ class PegInHoleTask:
             pose = gripper + (k * h) * twist
             force = self.servo_forces(state, pose, twist)
             contact_q = state.q
-            if self.engine == "compact":
-                result = self._compact.step(state, force=force)
-            else:
-                with torch.no_grad():
-                    result = self._reference.step(state, force=force)
+            with torch.no_grad():
+                result = self.simulator.step(state, force=force)
             bad = (result.solver == UNSOLVED) & ~(result.residual <= FAILURE_RESIDUAL)
             unsolved = unsolved | bad
             state = result.state

@@ -25,7 +25,7 @@ from torchcontact.envs._observe import (
     summaries,
 )
 from torchcontact.envs._states import PegInHoleStates
-from torchcontact.envs._task import ACTION_NAMES, Engine, PegInHoleTask, Physics
+from torchcontact.envs._task import ACTION_NAMES, PegInHoleTask, Physics
 from torchcontact.states import ContactSet
 
 Observation = NDArray[np.float64] | dict[str, NDArray[Any]]
@@ -53,7 +53,6 @@ class PegInHole2DVector(VectorEnv[Observation, NDArray[np.int64], NDArray[Any]])
         num_envs: number of environments ``B >= 1``.
         config: the task configuration (default :class:`PegInHoleConfig()`).
         observation: ``"state"`` or ``"noisy"``.
-        engine: ``"compact"`` or ``"reference"`` (see :class:`PegInHole2D`).
 
     Raises:
         ValueError: an argument is invalid (the message names it).
@@ -68,7 +67,6 @@ class PegInHole2DVector(VectorEnv[Observation, NDArray[np.int64], NDArray[Any]])
         num_envs: int,
         config: PegInHoleConfig | None = None,
         observation: ObservationMode = "state",
-        engine: Engine = "compact",
     ) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be an int >= 1, got {num_envs!r}")
@@ -80,7 +78,7 @@ class PegInHole2DVector(VectorEnv[Observation, NDArray[np.int64], NDArray[Any]])
         self.num_envs = num_envs
         self.config = config
         self.observation_mode: ObservationMode = observation
-        self.task = PegInHoleTask(config, engine=engine)
+        self.task = PegInHoleTask(config)
         self.single_action_space = spaces.Discrete(len(ACTION_NAMES))
         self.action_space = spaces.MultiDiscrete(np.full(num_envs, len(ACTION_NAMES)))
         self.single_observation_space = observation_space(self.task, observation)

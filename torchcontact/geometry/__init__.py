@@ -1,8 +1,7 @@
 """Geometry: planar polygons, half-planes, rigid transforms, quaternions and contact slots.
 
 ``TIE_TOLERANCE`` is the relative tolerance (of the longest edge) within which the slot
-generation (:func:`polygon_slots`) takes two edges as equally close; simulators that find the
-closest edges themselves use it too.
+generation (:func:`planar_slots`) takes two edges as equally close.
 """
 
 from torchcontact.geometry._quaternion import (
@@ -14,6 +13,7 @@ from torchcontact.geometry._quaternion import (
 )
 from torchcontact.geometry._se2 import (
     cross2,
+    dot2,
     perpendicular,
     point_velocity,
     rotation_matrix,
@@ -24,23 +24,24 @@ from torchcontact.geometry._se2 import (
 from torchcontact.geometry._shapes import HalfPlane, Polygon
 from torchcontact.geometry._slots import (
     TIE_TOLERANCE,
+    PlanarSlotTable,
     SlotGeometry,
-    concat_slots,
-    halfplane_slots,
-    polygon_slots,
+    planar_slot_table,
+    planar_slots,
 )
 
 __all__ = [
     "TIE_TOLERANCE",
     "HalfPlane",
+    "PlanarSlotTable",
     "Polygon",
     "SlotGeometry",
-    "concat_slots",
     "cross2",
-    "halfplane_slots",
+    "dot2",
     "perpendicular",
+    "planar_slot_table",
+    "planar_slots",
     "point_velocity",
-    "polygon_slots",
     "quat_conj",
     "quat_exp",
     "quat_log",

@@ -47,6 +47,18 @@ def cross2(a: Tensor, b: Tensor) -> Tensor:
     return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
 
 
+def dot2(a: Tensor, b: Tensor, c: Tensor | None = None, d: Tensor | None = None) -> Tensor:
+    """Planar dot products over the last dimension (size 2): ``a · b``, or ``a · b + c · d``.
+
+    Component by component (``a_x b_x + a_y b_y``): on the CPU, faster than a reduction over a
+    last dimension of two, or than a product of the broadcast pairs.
+    """
+    total = torch.addcmul(a[..., 0] * b[..., 0], a[..., 1], b[..., 1])
+    if c is None or d is None:
+        return total
+    return torch.addcmul(torch.addcmul(total, c[..., 0], d[..., 0]), c[..., 1], d[..., 1])
+
+
 def perpendicular(u: Tensor) -> Tensor:
     """``u`` rotated by +90°: ``(−u_y, u_x)``."""
     return torch.stack([-u[..., 1], u[..., 0]], dim=-1)

@@ -2,58 +2,373 @@
 
 from __future__ import annotations
 
+import math
+import weakref
+from dataclasses import dataclass
+
 import torch
 from torch import Tensor
 
 from torchcontact.contact import ContactProblem
 from torchcontact.geometry import (
     HalfPlane,
+    PlanarSlotTable,
     Polygon,
     SlotGeometry,
-    concat_slots,
-    halfplane_slots,
-    perpendicular,
-    point_velocity,
-    polygon_slots,
-    transform_points,
-    wrench_row,
+    cross2,
+    dot2,
+    planar_slot_table,
+    planar_slots,
 )
 from torchcontact.sim._scene import Scene
 from torchcontact.sim._state import SceneState
 
 
+@dataclass(frozen=True, eq=False)
+class SceneLayout:
+    """Index tables of a scene, in one dtype and on one device, built once.
+
+    The scene's shapes are ordered ``[dynamic bodies, kinematic bodies, static polygons,
+    half-planes]``, so that their poses are ``[q, q_kinematic, static_poses]``.
+
+    Attributes:
+        slots: the slot geometry's tables of the shapes and the scene's slot groups (slot
+            order: the scene's).
+        static_poses: ``(Nf, 3)`` world poses of the static polygons, then zeros for the
+            half-planes.
+        receiver_column: ``(K,)`` long: the dynamic-body index of each slot's receiver, ``Nd``
+            if it is not dynamic.
+        other_column: ``(K,)`` long: the same for each slot's other body.
+        receiver_driver: ``(K,)`` long: the kinematic-body index of each slot's receiver,
+            ``Nk`` if it is not kinematic.
+        other_driver: ``(K,)`` long: the same for each slot's other body.
+        num_dynamic: ``Nd``.
+        mutual: some slot has a dynamic other body.
+        driven_receiver: some slot's receiver is kinematic.
+        driven_other: some slot's other body is kinematic.
+        friction_sources: the distinct friction coefficients of the scene's pairs (numbers,
+            or tensors broadcastable to the batch).
+        slot_friction: ``(K,)`` long: each slot's index into ``friction_sources``.
+        mu: ``(K,)`` the slots' friction coefficients, or ``None`` when a coefficient is a
+            tensor that requires grad or varies over the batch (then gathered every step).
+        mass_matrix: ``(n, n)`` the mass matrix, or ``None`` when a mass or inertia requires
+            grad (then recomputed every step).
+        gravity_force: ``(Nd, 3)`` the bodies' weights ``(m gx, m gy, 0)``, or ``None`` with
+            ``mass_matrix``.
+    """
+
+    slots: PlanarSlotTable
+    static_poses: Tensor
+    receiver_column: Tensor
+    other_column: Tensor
+    receiver_driver: Tensor
+    other_driver: Tensor
+    num_dynamic: int
+    mutual: bool
+    driven_receiver: bool
+    driven_other: bool
+    friction_sources: tuple[float | Tensor, ...]
+    slot_friction: Tensor
+    mu: Tensor | None
+    mass_matrix: Tensor | None
+    gravity_force: Tensor | None
+
+
+_LAYOUTS: weakref.WeakKeyDictionary[Scene, dict[tuple[torch.dtype, torch.device], SceneLayout]]
+_LAYOUTS = weakref.WeakKeyDictionary()
+
+
+def scene_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> SceneLayout:
+    """The :class:`SceneLayout` of a scene in ``dtype`` on ``device`` (cached per scene).
+
+    A scene is immutable: its bodies, shapes and friction are read once. Masses, inertias and
+    friction coefficients given as tensors that require grad are not cached but read at every
+    step, so that gradients reach them.
+    """
+    layouts = _LAYOUTS.setdefault(scene, {})
+    key = (dtype, device)
+    if key not in layouts:
+        layouts[key] = _build_layout(scene, dtype, device)
+    return layouts[key]
+
+
+def _build_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> SceneLayout:
+    static = [i for i, b in enumerate(scene.bodies) if b.kind == "static"]
+    polygons = [i for i in static if isinstance(scene.bodies[i].shape, Polygon)]
+    planes = [i for i in static if isinstance(scene.bodies[i].shape, HalfPlane)]
+    order = [*scene.dynamic, *scene.kinematic, *polygons, *planes]
+    shape_index = {body: s for s, body in enumerate(order)}
+    table = planar_slot_table(
+        [scene.bodies[i].shape for i in order],
+        [(shape_index[g.receiver], shape_index[g.other]) for g in scene.slot_groups],
+        margin=scene.margin,
+    )
+    static_poses = torch.zeros(len(polygons) + len(planes), 3, dtype=torch.float64)
+    for s, body in enumerate(polygons):
+        pose = scene.bodies[body].pose
+        assert pose is not None
+        static_poses[s] = pose.detach()
+
+    K, Nd, Nk = scene.num_slots, len(scene.dynamic), len(scene.kinematic)
+    columns = {name: torch.full((K,), size, dtype=torch.long) for name, size in
+               (("rd", Nd), ("od", Nd), ("rk", Nk), ("ok", Nk))}  # fmt: skip
+    sources: list[float | Tensor] = []
+    slot_friction: list[int] = []
+    for group in scene.slot_groups:
+        span = slice(group.start, group.start + group.count)
+        for member, dynamic, kinematic in ((group.receiver, "rd", "rk"), (group.other, "od", "ok")):
+            if member in scene.dynamic:
+                columns[dynamic][span] = scene.dynamic.index(member)
+            elif member in scene.kinematic:
+                columns[kinematic][span] = scene.kinematic.index(member)
+        friction = scene.pair_mu(group.receiver, group.other)
+        found = [k for k, source in enumerate(sources) if source is friction]
+        if not found:
+            sources.append(friction)
+        slot_friction.extend([found[0] if found else len(sources) - 1] * group.count)
+
+    def constant(value: float | Tensor) -> bool:
+        return not isinstance(value, Tensor) or (value.numel() == 1 and not value.requires_grad)
+
+    mu = None
+    if all(constant(source) for source in sources):
+        values = torch.tensor([float(source) for source in sources], dtype=torch.float64)
+        mu = values[torch.tensor(slot_friction, dtype=torch.long)].to(dtype=dtype, device=device)
+    parameters = [
+        value
+        for i in scene.dynamic
+        for value in (scene.bodies[i].mass, scene.bodies[i].inertia)
+        if isinstance(value, Tensor)
+    ]
+    mass_matrix = gravity_force = None
+    if not any(value.requires_grad for value in parameters):
+        mass_matrix = scene.mass_matrix().detach().to(dtype=dtype, device=device)
+        gravity_force = _gravity_force(scene, dtype, device).detach()
+
+    def move(value: Tensor) -> Tensor:
+        return value.to(device=device, dtype=dtype if value.is_floating_point() else value.dtype)
+
+    return SceneLayout(
+        slots=table.to(dtype=dtype, device=device),
+        static_poses=move(static_poses),
+        receiver_column=move(columns["rd"]),
+        other_column=move(columns["od"]),
+        receiver_driver=move(columns["rk"]),
+        other_driver=move(columns["ok"]),
+        num_dynamic=Nd,
+        mutual=bool((columns["od"] < Nd).any()),
+        driven_receiver=bool((columns["rk"] < Nk).any()),
+        driven_other=bool((columns["ok"] < Nk).any()),
+        friction_sources=tuple(sources),
+        slot_friction=torch.tensor(slot_friction, dtype=torch.long, device=device),
+        mu=mu,
+        mass_matrix=mass_matrix,
+        gravity_force=gravity_force,
+    )
+
+
+def _gravity_force(scene: Scene, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """``(Nd, 3)`` the dynamic bodies' weights ``(m gx, m gy, 0)`` (keeps a tensor mass's
+    graph)."""
+    gravity = torch.tensor([*scene.gravity, 0.0], dtype=dtype, device=device)
+    return scene.masses().to(dtype=dtype, device=device)[:, None] * gravity
+
+
 def body_poses(scene: Scene, state: SceneState) -> list[Tensor | None]:
     """World pose ``(*B, 3)`` of every body (``None`` for half-planes)."""
-    return poses_of(scene, q=state.q, q_kinematic=state.q_kinematic)
-
-
-def poses_of(scene: Scene, *, q: Tensor, q_kinematic: Tensor) -> list[Tensor | None]:
-    """:func:`body_poses` from the poses of the dynamic ``(*B, Nd, 3)`` and kinematic
-    ``(*B, Nk, 3)`` bodies alone."""
     poses: list[Tensor | None] = []
-    batch = q.shape[:-2]
+    batch = state.batch_shape
     for i, body in enumerate(scene.bodies):
         if body.kind == "dynamic":
-            poses.append(q[..., scene.dynamic.index(i), :])
+            poses.append(state.q[..., scene.dynamic.index(i), :])
         elif body.kind == "kinematic":
-            poses.append(q_kinematic[..., scene.kinematic.index(i), :])
+            poses.append(state.q_kinematic[..., scene.kinematic.index(i), :])
         elif isinstance(body.shape, Polygon):
             assert body.pose is not None
-            poses.append(body.pose.to(q).expand(*batch, 3))
+            poses.append(body.pose.to(state.q).expand(*batch, 3))
         else:
             poses.append(None)
     return poses
 
 
-def polygon_vertices(
-    scene: Scene, poses: list[Tensor | None], dtype: torch.dtype
-) -> dict[int, Tensor]:
-    """World vertices ``(*B, V, 2)`` of every posed polygon, by body index."""
-    return {
-        i: transform_points(pose, body.shape.vertices.to(dtype))
-        for i, (body, pose) in enumerate(zip(scene.bodies, poses, strict=True))
-        if isinstance(body.shape, Polygon) and pose is not None
-    }
+def shape_poses(layout: SceneLayout, q: Tensor, q_kinematic: Tensor) -> Tensor:
+    """``(*B, Ns, 3)`` world poses of the layout's shapes, from the dynamic ``(*B, Nd, 3)``
+    and kinematic ``(*B, Nk, 3)`` poses."""
+    static = layout.static_poses.expand(*q.shape[:-2], -1, 3)
+    return torch.cat([q, q_kinematic, static], dim=-2)
+
+
+def _pick(table: Tensor, index: Tensor) -> Tensor:
+    """``(P, W, C)``: the rows ``index (P, W)`` of ``table (P, R, C)``."""
+    return table.gather(1, index.unsqueeze(-1).expand(*index.shape, table.shape[-1]))
+
+
+def dynamic_rows(
+    layout: SceneLayout, poses: Tensor, points: Tensor, directions: Tensor, slots: Tensor
+) -> Tensor:
+    """Rows mapping the dynamic bodies' twists to slots' relative velocities along directions.
+
+    A dynamic receiver contributes ``+[u, r × u]`` (``r`` from its centroid to the slot's
+    point), a dynamic other body ``−[u, r × u]``, in its three columns.
+
+    Args:
+        layout: the scene's layout.
+        poses: ``(P, Ns, 3)`` world poses of the layout's shapes.
+        points: ``(P, W, 2)`` the slots' points, world frame.
+        directions: ``(P, W, F, 2)`` unit directions ``u`` per slot, world frame.
+        slots: ``(P, W)`` long: the slots' indices among the scene's ``K``.
+
+    Returns:
+        ``(P, W, F, 3 Nd)`` rows.
+    """
+    members = [(layout.slots.slot_receiver, layout.receiver_column, 1)]
+    if layout.mutual:
+        members.append((layout.slots.slot_other, layout.other_column, -1))
+    wrenches, columns = [], []
+    for shape, column, sign in members:
+        arm = (points - _pick(poses, shape[slots])[..., :2]).unsqueeze(-2)  # (P, W, 1, 2)
+        wrench = torch.cat([directions, cross2(arm, directions).unsqueeze(-1)], dim=-1)
+        wrenches.append(wrench if sign > 0 else -wrench)
+        columns.append(column[slots][..., None, None])  # (P, W, 1, 1)
+    # One block of three columns per dynamic body: the wrenches of the slots' members that
+    # are that body.
+    blocks = []
+    for body in range(layout.num_dynamic):
+        block = torch.where(columns[0] == body, wrenches[0], 0.0)
+        for wrench, column in zip(wrenches[1:], columns[1:], strict=True):
+            block = block + torch.where(column == body, wrench, 0.0)
+        blocks.append(block)
+    return torch.cat(blocks, dim=-1)
+
+
+def known_velocities(
+    layout: SceneLayout, poses: Tensor, points: Tensor, frames: Tensor, control: Tensor | None
+) -> Tensor:
+    """``(P, K, F)`` the kinematic bodies' contribution to every slot's relative velocity along
+    its directions: ``±u · (v + ω × r)`` of a kinematic receiver (``+``) or other body (``−``).
+
+    Args:
+        layout: the scene's layout.
+        poses: ``(P, Ns, 3)`` world poses of the layout's shapes.
+        points: ``(P, K, 2)`` every slot's point, world frame.
+        frames: ``(P, K, F, 2)`` unit directions per slot, world frame.
+        control: ``(P, Nk, 3)`` twists of the kinematic bodies, or ``None`` (at rest).
+    """
+    known = frames.new_zeros(frames.shape[:-1])
+    if control is None:
+        return known
+    # Twists of the slots' members, zero where a member is not kinematic.
+    twists = torch.cat([control, control.new_zeros(control.shape[0], 1, 3)], dim=-2)
+    slots = layout.slots
+    for driven, shape, driver, sign in (
+        (layout.driven_receiver, slots.slot_receiver, layout.receiver_driver, 1.0),
+        (layout.driven_other, slots.slot_other, layout.other_driver, -1.0),
+    ):
+        if driven:
+            twist = twists.index_select(-2, driver)  # (P, K, 3)
+            arm = points - poses.index_select(-2, shape)[..., :2]
+            spun = arm.flip(-1) * slots.turn
+            velocity = torch.addcmul(twist[..., :2], twist[..., 2:], spun)
+            known = known + sign * dot2(frames, velocity.unsqueeze(-2))
+    return known
+
+
+@dataclass(frozen=True, eq=False)
+class SlotState:
+    """The slots of a flat batch of scene states, before any problem is assembled.
+
+    Attributes:
+        layout: the scene's layout.
+        poses: ``(P, Ns, 3)`` world poses of the layout's shapes.
+        geometry: the ``K`` slots' geometry, batch ``(P,)``.
+        frames: ``(P, K, 2, 2)`` each slot's normal ``n`` and tangent ``t`` (``n`` turned by
+            +90°), world frame.
+        known: ``(P, K, 2)`` the known velocity terms ``bn`` and ``bt`` (along ``+t``).
+    """
+
+    layout: SceneLayout
+    poses: Tensor
+    geometry: SlotGeometry
+    frames: Tensor
+    known: Tensor
+
+
+def slot_state(scene: Scene, q: Tensor, q_kinematic: Tensor, control: Tensor | None) -> SlotState:
+    """The :class:`SlotState` of a flat batch: dynamic poses ``q (P, Nd, 3)``, kinematic poses
+    ``q_kinematic (P, Nk, 3)`` and twists ``control (P, Nk, 3)`` (or ``None``)."""
+    layout = scene_layout(scene, q.dtype, q.device)
+    poses = shape_poses(layout, q, q_kinematic)
+    geometry = planar_slots(layout.slots, poses)
+    normal = geometry.normals
+    frames = torch.stack([normal, normal.flip(-1) * layout.slots.turn], dim=-2)
+    known = known_velocities(layout, poses, geometry.points, frames, control)
+    return SlotState(layout, poses, geometry, frames, known)
+
+
+def assemble(
+    scene: Scene,
+    slots: SlotState,
+    v: Tensor,
+    keep: Tensor,
+    *,
+    force: Tensor | None,
+    friction: Tensor | None,
+) -> ContactProblem:
+    """The contact problem of a flat batch on the slots ``keep``.
+
+    Args:
+        scene: the scene.
+        slots: the batch's :class:`SlotState`, batch ``(P,)``.
+        v: ``(P, Nd, 3)`` twists of the dynamic bodies.
+        keep: ``(P, W)`` long: the slots of each entry's problem, among the ``K``.
+        force: ``(P, Nd, 3)`` applied generalized forces, or ``None``.
+        friction: ``(P, K)`` per-slot friction overriding the scene's, or ``None``.
+
+    Returns:
+        The problem, batch ``(P,)``, ``W`` slots.
+    """
+    layout, geometry = slots.layout, slots.geometry
+    P, dtype, device = v.shape[0], v.dtype, v.device
+
+    K, W = slots.geometry.phi.shape[-1], keep.shape[-1]
+    rows_of = (keep + K * torch.arange(P, device=device)[:, None]).flatten()
+
+    def gather(t: Tensor) -> Tensor:  # (P, K, ...) -> (P, W, ...)
+        return t.reshape(P * K, *t.shape[2:]).index_select(0, rows_of).view(P, W, *t.shape[2:])
+
+    frames = gather(slots.frames)
+    rows = dynamic_rows(layout, slots.poses, gather(geometry.points), frames, keep)
+    Jt_row = rows[..., 1, :]
+    known = gather(slots.known)
+    if layout.mass_matrix is None or layout.gravity_force is None:
+        M = scene.mass_matrix().to(dtype=dtype, device=device)
+        f = _gravity_force(scene, dtype, device)
+    else:
+        M, f = layout.mass_matrix, layout.gravity_force
+    f = f.expand(P, -1, 3) if force is None else f + force
+    if friction is not None:
+        mu = gather(friction)
+    elif layout.mu is not None:
+        mu = layout.mu[keep]
+    else:
+        values = [
+            torch.as_tensor(source, dtype=dtype, device=device).expand(P)
+            for source in layout.friction_sources
+        ]
+        mu = torch.stack(values, dim=-1).gather(1, layout.slot_friction[keep])
+    return ContactProblem.unchecked(
+        M=M,
+        v=v.flatten(-2),
+        f=f.flatten(-2),
+        Jn=rows[..., 0, :],
+        Jt=torch.stack([Jt_row, -Jt_row], dim=-2),
+        phi=gather(geometry.phi),
+        mu=mu,
+        h=scene.h,
+        mask=gather(geometry.active),
+        bn=known[..., 0],
+        bt=torch.stack([known[..., 1], -known[..., 1]], dim=-1),
+    )
 
 
 def contact_problem(
@@ -70,7 +385,9 @@ def contact_problem(
     tangent ``t = n`` rotated by +90°, the gap rate is ``n · (v_p,receiver − v_p,other)``: a
     dynamic body contributes the row ``±[n, r × n]`` (``r`` from its centroid to ``p``) to
     ``Jn``, a kinematic body its known point velocity to ``bn``, a static body nothing.
-    Friction directions are ``+t`` and ``−t``.
+    Friction directions are ``+t`` and ``−t``. Every slot group is computed at once
+    (:func:`~torchcontact.geometry.planar_slots` on the scene's cached tables). The inputs are
+    not validated (:meth:`Simulator.step` validates them).
 
     Args:
         scene: the scene.
@@ -85,77 +402,22 @@ def contact_problem(
         The contact problem (``n = 3 Nd``, ``K`` slots, ``D = 2``) and the slot geometry
         (points, normals from each slot's ``other`` body into its receiver, gaps, candidates).
     """
-    dtype, batch = state.q.dtype, state.batch_shape
-    num_dynamic = len(scene.dynamic)
-    if control is None:
-        control = torch.zeros(*batch, len(scene.kinematic), 3, dtype=dtype)
-    poses = body_poses(scene, state)
-    twists: list[Tensor | None] = []
-    for i, body in enumerate(scene.bodies):
-        if body.kind == "dynamic":
-            twists.append(None)
-        elif body.kind == "kinematic":
-            twists.append(control[..., scene.kinematic.index(i), :])
-        else:
-            twists.append(torch.zeros(*batch, 3, dtype=dtype))
-    world_vertices = polygon_vertices(scene, poses, dtype)
+    batch, K = state.batch_shape, scene.num_slots
+    P, Nd, Nk = math.prod(batch), len(scene.dynamic), len(scene.kinematic)
 
-    geometries: list[SlotGeometry] = []
-    Jn_parts, Jt_parts, bn_parts, bt_parts, mu_parts = [], [], [], [], []
-    zero_block = torch.zeros((), dtype=dtype)
-    for group in scene.slot_groups:
-        other_shape = scene.bodies[group.other].shape
-        vertices = world_vertices[group.receiver]
-        if isinstance(other_shape, HalfPlane):
-            geometry = halfplane_slots(vertices, other_shape, margin=scene.margin)
-        else:
-            geometry = polygon_slots(vertices, world_vertices[group.other], margin=scene.margin)
-        geometries.append(geometry)
-        normal = geometry.normals
-        tangent = perpendicular(normal)
-        blocks_n = [zero_block.expand(*normal.shape[:-1], 3)] * num_dynamic
-        blocks_t = list(blocks_n)
-        known_n = torch.zeros(normal.shape[:-1], dtype=dtype)
-        known_t = torch.zeros(normal.shape[:-1], dtype=dtype)
-        for member, sign in ((group.receiver, 1.0), (group.other, -1.0)):
-            pose = poses[member]
-            if pose is None:
-                continue
-            offset = geometry.points - pose[..., None, :2]
-            twist = twists[member]
-            if twist is None:
-                column = scene.dynamic.index(member)
-                blocks_n[column] = blocks_n[column] + sign * wrench_row(normal, offset)
-                blocks_t[column] = blocks_t[column] + sign * wrench_row(tangent, offset)
-            else:
-                velocity = point_velocity(twist, offset)
-                known_n = known_n + sign * (velocity * normal).sum(-1)
-                known_t = known_t + sign * (velocity * tangent).sum(-1)
-        Jn_parts.append(torch.stack(blocks_n, dim=-2).flatten(-2))
-        Jt_row = torch.stack(blocks_t, dim=-2).flatten(-2)
-        Jt_parts.append(torch.stack([Jt_row, -Jt_row], dim=-2))
-        bn_parts.append(known_n)
-        bt_parts.append(torch.stack([known_t, -known_t], dim=-1))
-        mu = torch.as_tensor(scene.pair_mu(group.receiver, group.other), dtype=dtype)
-        mu_parts.append(mu.unsqueeze(-1).expand(*batch, group.count))
+    def flat(t: Tensor | None) -> Tensor | None:
+        return None if t is None else t.reshape(P, *t.shape[len(batch) :])
 
-    slots = concat_slots(geometries)
-    masses = scene.masses().to(dtype)
-    gravity = torch.tensor([scene.gravity[0], scene.gravity[1], 0.0], dtype=dtype)
-    f = (masses[:, None] * gravity).expand(*batch, num_dynamic, 3)
-    if force is not None:
-        f = f + force
-    problem = ContactProblem(
-        M=scene.mass_matrix().to(dtype),
-        v=state.v.flatten(-2),
-        f=f.flatten(-2),
-        Jn=torch.cat(Jn_parts, dim=-2),
-        Jt=torch.cat(Jt_parts, dim=-3),
-        phi=slots.phi,
-        mu=torch.cat(mu_parts, dim=-1) if friction is None else friction,
-        h=scene.h,
-        mask=slots.active,
-        bn=torch.cat(bn_parts, dim=-1),
-        bt=torch.cat(bt_parts, dim=-2),
+    q, q_kinematic = state.q.reshape(P, Nd, 3), state.q_kinematic.reshape(P, Nk, 3)
+    slots = slot_state(scene, q, q_kinematic, flat(control))
+    keep = torch.arange(K, device=q.device).expand(P, K)
+    problem = assemble(
+        scene, slots, state.v.reshape(P, Nd, 3), keep, force=flat(force), friction=flat(friction)
     )
-    return problem, slots
+    geometry = slots.geometry
+    return problem.reshape(*batch), SlotGeometry(
+        points=geometry.points.reshape(*batch, K, 2),
+        normals=geometry.normals.reshape(*batch, K, 2),
+        phi=geometry.phi.reshape(*batch, K),
+        active=geometry.active.reshape(*batch, K),
+    )

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import math
+import warnings
 from dataclasses import dataclass, replace
+from typing import get_args
 
 import torch
 from torch import Tensor
 
-from torchcontact._checks import check_batched, check_float, check_int
+from torchcontact._checks import check_batched, check_float, check_int, check_real
 from torchcontact.contact import (
     ContactProblem,
     Method,
@@ -19,7 +22,7 @@ from torchcontact.contact import (
     solve_mode,
 )
 from torchcontact.geometry import SlotGeometry
-from torchcontact.sim._assemble import contact_problem
+from torchcontact.sim._assemble import assemble, slot_state
 from torchcontact.sim._scene import Scene
 from torchcontact.sim._state import SceneState
 
@@ -91,26 +94,61 @@ class Simulator:
 
     Each step (semi-implicit Euler: ``q⁺ = q + h v⁺``, kinematic bodies ``q⁺ = q + h u``):
 
-    1. assemble the contact problem of every scene of the batch;
-    2. solve all of them with one :func:`~torchcontact.contact.solve_mode` at the previous
+    1. compute the slot geometry of every scene of the batch (all slot groups at once);
+    2. keep, per scene, only its candidate slots (``geometry.active``), padded to the most
+       candidates of any scene of the batch plus one by the non-candidates with the largest
+       ``max(|φ| / h, |bn|)``: the solvers' tolerance scales are maxima of these over all
+       slots, so the slot that sets them is always kept; assemble the contact problem on
+       those slots (the rows :func:`~torchcontact.sim.contact_problem` gives them).
+       Non-candidate slots carry no impulse, so the solution of this compacted problem,
+       scattered back to the ``K`` slots, is that of the full problem;
+    3. solve all of them with one :func:`~torchcontact.contact.solve_mode` at the previous
        step's modes (contact modes rarely change between steps), and correct the modes of
        the inconsistent ones by a few batched active-set iterations
        (:func:`~torchcontact.contact.solve_active_set`);
-    3. send only the entries still inconsistent to the exact solvers in ``fallback`` order
-       (Lemke, then the QP fallback);
-    4. re-solve those with ``solve_mode`` at the exact modes, so that every accepted step is
-       differentiable through its active modes; an entry whose re-solve is not consistent
-       keeps the exact solver's raw impulses (``solver == 2``).
+    4. send only the entries still inconsistent to the exact solvers in ``fallback`` order
+       (Lemke, then the QP fallback); with ``retry_sticking``, the entries that the first
+       of them leaves unsolved are first tried once more by the active-set iteration started
+       from every candidate slot sticking;
+    5. re-solve the exact solvers' answers with ``solve_mode`` at their modes, so that every
+       accepted step is differentiable through its active modes; an entry whose re-solve is
+       not consistent keeps the exact solver's raw impulses (``solver == 2``).
+
+    The retry is for grasps: two pads pressing one body from both sides make redundant rows,
+    on which Lemke's pivoting can stop with an inaccurate answer and the QP fallback, though
+    accurate, is slow. There ``solve_mode`` at the right modes (typically every candidate
+    sticking) returns impulses consistent with them and an LCP residual near 1e-8, but reports
+    no convergence (its equality residual stalls above the float64 tolerance on the redundant
+    rows). A retry is accepted when it is consistent with its modes and either converged or
+    within ``retry_residual`` of solving the LCP (``solver == 0``).
 
     Attributes:
         scene: the scene.
         fallback: exact solvers tried in order for entries whose guessed mode fails.
         active_set_iterations: mode corrections tried before the exact solvers (0 disables).
+        retry_sticking: retry from all-sticking modes after the first fallback solver.
+        retry_residual: largest LCP residual (:func:`~torchcontact.contact.lcp_residual`) of
+            an accepted, unconverged retry.
     """
 
     scene: Scene
     fallback: tuple[Method, ...] = ("lemke", "qp")
     active_set_iterations: int = 4
+    retry_sticking: bool = True
+    retry_residual: float = 1e-6
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.scene, Scene):
+            raise ValueError(f"scene must be a Scene, got {type(self.scene).__name__}")
+        methods = get_args(Method)
+        if not isinstance(self.fallback, tuple) or not all(m in methods for m in self.fallback):
+            raise ValueError(
+                f"fallback must be a tuple of methods among {methods}, got {self.fallback!r}"
+            )
+        check_int("active_set_iterations", self.active_set_iterations, low=0)
+        if not isinstance(self.retry_sticking, bool):
+            raise ValueError(f"retry_sticking must be a bool, got {self.retry_sticking!r}")
+        check_real("retry_residual", self.retry_residual, low=0.0)
 
     def initial_state(
         self,
@@ -186,10 +224,7 @@ class Simulator:
             check_batched("friction", friction, shape=(*batch, K), like=state.q, like_name="q")
             if friction.numel() and float(friction.min()) < 0:
                 raise ValueError(f"friction must be >= 0, got minimum {float(friction.min())}")
-        problem, geometry = contact_problem(
-            self.scene, state, control=control, force=force, friction=friction
-        )
-        solution, solver = self._solve(problem, state.mode)
+        solution, solver, geometry = self._step_compacted(state, control, force, friction)
         h = self.scene.h
         v_next = solution.v_next.unflatten(-1, (len(self.scene.dynamic), 3))
         q_kinematic = state.q_kinematic
@@ -295,27 +330,111 @@ class Simulator:
             solver=empty(dtype=torch.long),
         )
 
+    def _step_compacted(
+        self,
+        state: SceneState,
+        control: Tensor | None,
+        force: Tensor | None,
+        friction: Tensor | None,
+    ) -> tuple[Solution, Tensor, SlotGeometry]:
+        """Assemble and solve on the candidate slots (step 2 of the class docstring), scatter
+        back.
+
+        Returns:
+            The solution with ``(*B, K)`` slot fields, the ``(*B,)`` solver codes and the
+            slot geometry of the ``K`` slots.
+        """
+        batch, K, h = state.batch_shape, self.scene.num_slots, self.scene.h
+        P, Nd, Nk = math.prod(batch), len(self.scene.dynamic), len(self.scene.kinematic)
+
+        def flat(t: Tensor | None) -> Tensor | None:
+            return None if t is None else t.reshape(P, *t.shape[len(batch) :])
+
+        q, q_kinematic = state.q.reshape(P, Nd, 3), state.q_kinematic.reshape(P, Nk, 3)
+        slots = slot_state(self.scene, q, q_kinematic, flat(control))
+        geometry = slots.geometry
+        mask = geometry.active
+        # Candidates first (in slot order), then the non-candidates by decreasing velocity
+        # scale, so that the slot that sets the solvers' tolerance scale stays in.
+        scale = torch.maximum(geometry.phi.detach().abs() / h, slots.known[..., 0].detach().abs())
+        order = torch.argsort(
+            torch.where(mask, math.inf, scale), dim=-1, descending=True, stable=True
+        )
+        width = min(K, int(mask.sum(-1).max()) + 1) if P else 0
+        keep = order[:, :width]  # (P, W)
+        problem = assemble(
+            self.scene,
+            slots,
+            state.v.reshape(P, Nd, 3),
+            keep,
+            force=flat(force),
+            friction=flat(friction),
+        )
+        guess = state.mode.reshape(P, K).gather(1, keep)
+        solution, solver = self._solve(problem, guess)
+
+        def scatter(t: Tensor) -> Tensor:
+            index = keep.view(P, width, *([1] * (t.dim() - 2))).expand(t.shape)
+            full = t.new_zeros(P, K, *t.shape[2:]).scatter(1, index, t)
+            return full.reshape(*batch, *full.shape[1:])
+
+        full = replace(
+            solution,
+            v_next=solution.v_next.reshape(*batch, 3 * Nd),
+            pn=scatter(solution.pn),
+            pt=scatter(solution.pt),
+            mode=scatter(solution.mode),
+            status=solution.status.map_tensors(lambda t: t.reshape(batch)),
+        )
+        geometry = SlotGeometry(
+            points=geometry.points.reshape(*batch, K, 2),
+            normals=geometry.normals.reshape(*batch, K, 2),
+            phi=geometry.phi.reshape(*batch, K),
+            active=mask.reshape(*batch, K),
+        )
+        return full, solver.reshape(batch), geometry
+
     def _solve(self, problem: ContactProblem, guess: Tensor) -> tuple[Solution, Tensor]:
-        """Mode guess first, exact fallback for the failing entries; see the class docstring."""
-        batch = problem.batch_shape
-        flat = problem.flatten()
-        guess = torch.where(flat.slot_mask, guess.reshape(flat.slot_mask.shape), 0)
-        solution = solve_active_set(flat, guess, max_iterations=self.active_set_iterations)
+        """Mode guess first, exact fallback for the failing entries; see the class docstring.
+
+        Args:
+            problem: the (compacted) problem of a flat batch ``(B,)``.
+            guess: ``(B, K)`` mode guess.
+        """
+        guess = torch.where(problem.slot_mask, guess, 0)
+        solution = solve_active_set(problem, guess, max_iterations=self.active_set_iterations)
         good = solution.status.converged
         solver = torch.where(good, SOLVED_BY_GUESS, UNSOLVED)
         pending = torch.nonzero(~good).squeeze(-1)
-        for method in self.fallback:
+        for position, method in enumerate(self.fallback):
             if pending.numel() == 0:
                 break
-            exact = solve(flat[pending], method)
+            if position == 1 and self.retry_sticking:
+                subset = problem[pending]
+                retry = solve_active_set(
+                    subset, subset.slot_mask.long(), max_iterations=self.active_set_iterations
+                )
+                close = retry.status.residual <= self.retry_residual
+                accepted = is_consistent(subset, retry) & (retry.status.converged | close)
+                if bool(accepted.any()):
+                    done = pending[accepted]
+                    solution = solution.scatter(done, retry.map_tensors(lambda t, a=accepted: t[a]))
+                    solver = solver.index_put((done,), torch.full_like(done, SOLVED_BY_GUESS))
+                pending = pending[~accepted]
+                if pending.numel() == 0:
+                    break
+            with warnings.catch_warnings():
+                # OSQP's "solved inaccurate" is reported through the status already.
+                warnings.filterwarnings("ignore", message="OSQP exited", category=UserWarning)
+                exact = solve(problem[pending], method)
             converged = exact.status.converged
             done = pending[converged]
             if done.numel():
                 exact_done = exact.map_tensors(lambda t, c=converged: t[c])
                 again = solve_mode(
-                    flat[done], exact_done.mode, initial_impulses=(exact_done.pn, exact_done.pt)
+                    problem[done], exact_done.mode, initial_impulses=(exact_done.pn, exact_done.pt)
                 )
-                reproduced = is_consistent(flat[done], again) & again.status.converged
+                reproduced = is_consistent(problem[done], again) & again.status.converged
                 solution = solution.scatter(done, again.where(reproduced, exact_done))
                 codes = torch.where(reproduced, SOLVED_BY_EXACT_MODE, SOLVED_RAW)
                 solver = solver.index_put((done,), codes)
@@ -323,9 +442,9 @@ class Simulator:
         # Report canonical modes: a slot that slides at zero slip, or carries no impulse in an
         # active mode, is labelled as the solution shows it (sticking, separated).
         canonical = contact_mode(
-            flat, v_next=solution.v_next.detach(), pn=solution.pn.detach(), pt=solution.pt.detach()
+            problem,
+            v_next=solution.v_next.detach(),
+            pn=solution.pn.detach(),
+            pt=solution.pt.detach(),
         )
-        merged = replace(solution, mode=canonical)
-        return merged.map_tensors(lambda t: t.reshape((*batch, *t.shape[1:]))), solver.reshape(
-            batch
-        )
+        return replace(solution, mode=canonical), solver
