@@ -83,3 +83,25 @@ def test_hand_written_constants_match_the_code() -> None:
     assert len(rows) == 6
     for name, value in rows:
         assert getattr(envs, name) == int(value), name
+
+
+PAGES_WITH_CODE = ("getting-started.md", "guide/contact.md", "guide/simulator.md")
+PAGES_WITH_CODE += ("guide/filters.md", "guide/robots.md")
+
+
+@pytest.mark.parametrize("page", PAGES_WITH_CODE)
+def test_page_examples_run(page: str) -> None:
+    """The Python blocks of a page run in order, as one script."""
+    text = (ROOT / "docs" / page).read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, flags=re.DOTALL)
+    assert blocks, f"{page} lost its examples"
+    exec(compile("\n".join(blocks), page, "exec"), {})
+
+
+def test_every_page_with_python_is_run() -> None:
+    pages = {
+        path.relative_to(ROOT / "docs").as_posix()
+        for path in (ROOT / "docs").rglob("*.md")
+        if "```python" in path.read_text()
+    }
+    assert pages == set(PAGES_WITH_CODE)

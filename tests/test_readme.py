@@ -19,7 +19,8 @@ def test_readme_example_tracks_the_box_through_the_occlusion() -> None:
     namespace: dict = {}
     exec(compile(blocks[0], "README.md", "exec"), namespace)
     error, y, box = namespace["error"], namespace["y"], namespace["box"]
-    assert error.shape == (60,) and bool(torch.isfinite(error).all())
+    assert error.shape == (60,)
+    assert bool(torch.isfinite(error).all())
     hidden = torch.isnan(y[:, 0])
     assert hidden.nonzero().flatten().tolist() == list(range(8, 18))
     sigma = 5.0  # mm, the camera's noise per axis
