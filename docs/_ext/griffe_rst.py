@@ -19,7 +19,9 @@ from griffe import Extension, Object
 
 ROLE = re.compile(r":(?:class|func|meth|attr|data|mod|obj|exc):`(~?)([^`]+)`")
 MATH = re.compile(r":math:`([^`]+)`")
-MATH_BLOCK = re.compile(r"^([ \t]*)\.\. math::[ \t]*\n((?:[ \t]*\n|\1[ \t]+\S.*\n)+)", re.M)
+MATH_BLOCK = re.compile(
+    r"^([ \t]*)\.\. math::[ \t]*(.*)\n((?:[ \t]*\n|\1[ \t]+\S.*\n)*)", re.MULTILINE
+)
 
 
 def _role(match: re.Match[str]) -> str:
@@ -34,7 +36,10 @@ def _role(match: re.Match[str]) -> str:
 
 
 def _math_block(match: re.Match[str]) -> str:
-    indent, body = match.group(1), textwrap.dedent(match.group(2)).strip("\n")
+    indent, first, rest = match.group(1), match.group(2).strip(), match.group(3)
+    body = "\n".join(filter(None, (first, textwrap.dedent(rest).strip("\n"))))
+    if "&" in body or "\\\\" in body:  # several aligned lines: one aligned environment
+        body = f"\\begin{{aligned}}\n{body}\n\\end{{aligned}}"
     return f"{indent}$$\n{textwrap.indent(body, indent)}\n{indent}$$\n\n"
 
 
