@@ -32,8 +32,7 @@ def tutorial_markdown(path: Path) -> str:
             parts.append(f"```python\n{source}\n```")
     if parts and parts[0].startswith("# "):  # the title first, then where the file is
         title, _, rest = parts[0].partition("\n")
-        parts[0] = title + ("\n" + rest if rest.strip() else "")
-        parts.insert(1, _source_note(path))
+        parts[0:1] = [title, _source_note(path), *([rest.strip("\n")] if rest.strip() else [])]
     else:
         parts.insert(0, _source_note(path))
     return "\n\n".join(parts) + "\n"
@@ -43,10 +42,10 @@ def _source_note(path: Path) -> str:
     name = path.relative_to(ROOT).as_posix()
     return (
         f'!!! note "Source: `{name}`"\n'
-        f"    This page is the notebook `{name}` (jupytext percent format), shown without its\n"
-        f"    outputs. Run it with `python {name}`, or open it as a notebook (see\n"
-        "    [Tutorials](index.md)). `TORCHCONTACT_FAST=1` runs it at small sizes;\n"
-        "    `TORCHCONTACT_OUT=folder` chooses where it writes its figures."
+        f"    The notebook `{name}` (jupytext percent format), shown without its outputs.\n"
+        f"    Run it with `python {name}` or open it as a notebook ([how](index.md)):\n"
+        "    `TORCHCONTACT_FAST=1` runs it at small sizes, `TORCHCONTACT_OUT=folder` chooses\n"
+        "    where it writes its figures."
     )
 
 
