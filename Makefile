@@ -31,7 +31,8 @@ typecheck: venv
 # The documentation site, strict (a broken reference or a docstring warning fails), built into a
 # temporary folder; `$(PY) -m mkdocs serve` shows it while editing.
 docs: venv
-	NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict --quiet --site-dir "$$(mktemp -d)"
+	site=$$(mktemp -d) && NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict --quiet --site-dir "$$site" \
+		&& rm -rf "$$site"
 
 pytest: venv
 	MPLBACKEND=Agg $(PY) -m pytest
