@@ -9,6 +9,7 @@ entry there (an anchor ``torchcontact.<subpackage>.<name>``).
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import os
 import re
 import subprocess
@@ -105,3 +106,24 @@ def test_every_page_with_python_is_run() -> None:
         if "```python" in path.read_text()
     }
     assert pages == set(PAGES_WITH_CODE)
+
+
+def test_rst_markup_becomes_markdown() -> None:
+    """The griffe extension of the API pages (docs/_ext/griffe_rst.py)."""
+    spec = importlib.util.spec_from_file_location("griffe_rst", ROOT / "docs/_ext/griffe_rst.py")
+    assert spec is not None
+    assert spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    convert = module.convert
+    assert convert(":class:`Gaussian`") == "`Gaussian`"
+    assert convert(":func:`~torchcontact.contact.solve_mode`") == (
+        '<autoref identifier="torchcontact.contact.solve_mode" optional>'
+        "<code>solve_mode()</code></autoref>"
+    )
+    assert convert("so :math:`x^2`.") == "so $x^2$."
+    block = "Step:\n\n.. math::\n\n    a &= b \\\\\n    c &= d\n\nwhere"
+    assert convert(block) == (
+        "Step:\n\n$$\n\\begin{aligned}\na &= b \\\\\nc &= d\n\\end{aligned}\n$$\n\nwhere"
+    )
+    assert convert(".. math:: y = F x\n\nso") == "$$\ny = F x\n$$\n\nso"
