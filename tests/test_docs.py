@@ -63,10 +63,14 @@ def test_every_tutorial_is_a_page(site: Path) -> None:
 
 
 def test_pages_show_the_figures(site: Path) -> None:
-    for page in ("experiments/triangle-grasp", ""):
-        html = (site / page / "index.html").read_text()
-        assert "images/triangle_grasp.png" in html
-    assert (site / "images" / "triangle_grasp.png").is_file()
+    figures = {
+        "": "triangle_grasp.png",
+        "experiments/triangle-grasp": "triangle_grasp.png",
+        "experiments/peg-in-hole": "peg_planning.png",
+    }
+    for page, figure in figures.items():
+        assert f"images/{figure}" in (site / page / "index.html").read_text()
+        assert (site / "images" / figure).is_file()
 
 
 def test_no_reference_to_files_outside_the_repository() -> None:
