@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 SUBPACKAGES = ("contact", "sim", "geometry", "filters", "states", "rl", "envs", "robots")
@@ -100,7 +101,11 @@ def test_page_examples_run(page: str) -> None:
     text = (ROOT / "docs" / page).read_text()
     blocks = re.findall(r"```python\n(.*?)```", text, flags=re.DOTALL)
     assert blocks, f"{page} lost its examples"
-    exec(compile("\n".join(blocks), page, "exec"), {})
+    threads = torch.get_num_threads()
+    try:
+        exec(compile("\n".join(blocks), page, "exec"), {})
+    finally:
+        torch.set_num_threads(threads)
 
 
 def test_every_page_with_python_is_run() -> None:

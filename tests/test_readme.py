@@ -17,7 +17,11 @@ def test_readme_example_tracks_the_box_through_the_occlusion() -> None:
     blocks = re.findall(r"```python\n(.*?)```", text, flags=re.DOTALL)
     assert blocks, "README lost its example"
     namespace: dict = {}
-    exec(compile(blocks[0], "README.md", "exec"), namespace)
+    threads = torch.get_num_threads()
+    try:
+        exec(compile(blocks[0], "README.md", "exec"), namespace)
+    finally:
+        torch.set_num_threads(threads)  # the example runs on one thread; the next tests not
     error, y, box = namespace["error"], namespace["y"], namespace["box"]
     assert error.shape == (60,)
     assert bool(torch.isfinite(error).all())
