@@ -1,18 +1,19 @@
 # Two commands do all set-up on a fresh machine:
 #   make demo   -- create/reuse .venv, install pinned dependencies, run the main job
-#   make test   -- create/reuse .venv, install pinned dependencies, run lint, types, tests and tutorials
+#   make test   -- create/reuse .venv, install pinned dependencies, run lint, types, tests and tutorials,
+#                  and build the documentation site in strict mode
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: venv demo test lint typecheck pytest pytest-portable bench clean
+.PHONY: venv demo test lint typecheck docs pytest pytest-portable bench clean
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	# torch first and alone: `torch==2.13.0` resolves to the local CPU build where one is provided.
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev]"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,docs]"
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -27,6 +28,12 @@ lint: venv
 typecheck: venv
 	$(PY) -m mypy
 
+# The documentation site, strict (a broken reference or a docstring warning fails), built into a
+# temporary folder; `$(PY) -m mkdocs serve` shows it while editing.
+docs: venv
+	site=$$(mktemp -d) && NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict --quiet --site-dir "$$site" \
+		&& rm -rf "$$site"
+
 pytest: venv
 	MPLBACKEND=Agg $(PY) -m pytest
 
@@ -38,13 +45,13 @@ pytest-portable: venv
 	MKL_CBWR=COMPATIBLE OMP_NUM_THREADS=1 MPLBACKEND=Agg $(PY) -m pytest -q -p no:cacheprovider \
 		tests/contact tests/sim tests/filters tests/envs tests/states
 
-test: lint typecheck pytest pytest-portable
+test: lint typecheck docs pytest pytest-portable
 
 bench: venv
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,bench]"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,docs,bench]"
 	$(PY) benchmarks/bench_contact.py
 	$(PY) benchmarks/bench_sim.py
 	$(PY) benchmarks/bench_robots.py
 
 clean:
-	rm -rf $(VENV) runs .pytest_cache .mypy_cache .ruff_cache
+	rm -rf $(VENV) runs site .pytest_cache .mypy_cache .ruff_cache

@@ -158,7 +158,7 @@ def run(args: Args) -> dict[str, Any]:
 def write_table(
     path: Path, args: Args, metrics: dict[str, dict[str, float]], summary: dict[str, Any]
 ) -> None:
-    """``results.md``: settings, the table, the calibration and the issue's targets."""
+    """``results.md``: settings, the table, the calibration and the RBPF's error ratios."""
     calibration = ", ".join(
         f"{n} → {1e3 * seconds / args.steps:.1f}" for n, seconds in summary["calibration"].items()
     )

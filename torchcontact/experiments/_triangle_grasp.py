@@ -680,7 +680,7 @@ def evaluate_tracking(
 
 
 def grasp_summary(trials: GraspTrials, metrics: dict[str, dict[str, float]]) -> dict[str, Any]:
-    """The issue's targets and sanity checks of the ground truth.
+    """The RBPF's error ratios against the baselines, and sanity checks of the ground truth.
 
     Returns:
         ``ratio_pos_occ`` and ``ratio_theta_occ`` (RBPF RMSE during the occlusion over the
