@@ -101,7 +101,7 @@ class ModeTable:
 def mode_table(layout: SlotLayout, modes: Tensor) -> ModeTable:
     """The :class:`ModeTable` of ``(K, S)`` long per-slot modes."""
     f64 = torch.float64
-    modes = modes.to(layout.frame.device)
+    modes = modes.to(layout.gravity_step.device)
     acting = modes >= 1
     W = max(1, int(acting.sum(-1).max()))
     slots = torch.argsort(acting.to(torch.uint8), dim=-1, descending=True, stable=True)[:, :W]

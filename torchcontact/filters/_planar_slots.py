@@ -44,9 +44,7 @@ class SlotLayout:
             where it is the receiver (owns the vertex), and the known velocities count with
             ``+1`` where the kinematic body is the receiver, ``-1`` where it is the other
             body, 0 where the group has none.
-        mu: ``(S,)`` friction coefficients.
-        inverse_mass: ``(3,)`` diagonal of the tracked body's inverse mass matrix.
-        gravity_step: ``(3,)`` the contact-free velocity change of a step, ``h M⁻¹ f``.
+        gravity_step: ``(3,)`` the contact-free velocity change of a step, ``h g``.
         h: time step, seconds.
         pose_tangents: ``(3, Ns, 3)`` the derivatives of every shape's pose along ``x``, ``y``
             and ``θ`` of the tracked body (the unit vectors on the tracked shape, else 0).
@@ -66,8 +64,6 @@ class SlotLayout:
     static_poses: Tensor
     slot_kinematic: Tensor
     feature_sign: Tensor
-    mu: Tensor
-    inverse_mass: Tensor
     gravity_step: Tensor
     h: float
     pose_tangents: Tensor
@@ -80,12 +76,9 @@ class SlotLayout:
 
 
 def slot_layout(scene: Scene, device: torch.device) -> SlotLayout:
-    """The :class:`SlotLayout` of a scene with exactly one dynamic body, on ``device``.
-
-    Raises:
-        ValueError: naming ``scene`` if a pair's friction is not a scalar (one scene serves
-            every batch entry).
-    """
+    """The :class:`SlotLayout` of a scene with exactly one dynamic body, on ``device`` (the
+    geometry only: the physical parameters are the model's, see
+    :class:`~torchcontact.filters.PlanarContactModel`)."""
     f64 = torch.float64
     (tracked,) = scene.dynamic
     static, planes = [], []
@@ -104,14 +97,7 @@ def slot_layout(scene: Scene, device: torch.device) -> SlotLayout:
 
     slot_kinematic: list[int] = []
     feature_sign: list[list[float]] = []
-    mu: list[float] = []
     for group in scene.slot_groups:
-        friction = torch.as_tensor(scene.pair_mu(group.receiver, group.other), dtype=f64).detach()
-        if friction.numel() != 1:
-            raise ValueError(
-                "scene: the linearization needs scalar friction coefficients, got a tensor of "
-                f"shape {tuple(friction.shape)}"
-            )
         partner = group.other if group.receiver == tracked else group.receiver
         moving = scene.bodies[partner].kind == "kinematic"
         dynamic = 1.0 if group.receiver == tracked else -1.0
@@ -119,10 +105,7 @@ def slot_layout(scene: Scene, device: torch.device) -> SlotLayout:
         signs = [1.0, dynamic, dynamic, -dynamic, dynamic, dynamic, dynamic, known, known]
         slot_kinematic.extend([scene.kinematic.index(partner) if moving else 0] * group.count)
         feature_sign.extend([signs] * group.count)
-        mu.extend([float(friction)] * group.count)
 
-    body = scene.bodies[tracked]
-    mass, inertia = float(body.mass_value().detach()), float(body.inertia_value().detach())
     gravity = torch.tensor([*scene.gravity, 0.0], dtype=f64)
     static_poses = torch.zeros(len(static) + len(planes), 3, dtype=f64)
     for s, body_index in enumerate(static):
@@ -138,8 +121,6 @@ def slot_layout(scene: Scene, device: torch.device) -> SlotLayout:
         "static_poses": static_poses,
         "slot_kinematic": torch.tensor(slot_kinematic, dtype=torch.long),
         "feature_sign": torch.tensor(feature_sign, dtype=f64),
-        "mu": torch.tensor(mu, dtype=f64),
-        "inverse_mass": torch.tensor([1.0 / mass, 1.0 / mass, 1.0 / inertia], dtype=f64),
         "gravity_step": scene.h * gravity,
         "pose_tangents": pose_tangents,
         "pose_directions": eye,
