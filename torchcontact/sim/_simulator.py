@@ -159,8 +159,13 @@ class Simulator:
     ) -> SceneState:
         """A state from poses (twists default to zero, modes to separated).
 
+        The last two dimensions are always the scene's bodies and their pose: one scene of a
+        one-body scene is ``q`` of shape ``(1, 3)`` (no batch), a batch of ``B`` of them
+        ``(B, 1, 3)``. (:func:`~torchcontact.contact.planar_box_problem`, a single box's
+        problem, reads ``(B, 3)`` as a batch of ``B`` boxes instead.)
+
         Args:
-            q: ``(*B, Nd, 3)`` dynamic-body poses.
+            q: ``(*B, Nd, 3)`` dynamic-body poses ``(x, y, θ)``, world frame.
             v: ``(*B, Nd, 3)`` twists, default zero.
             q_kinematic: ``(*B, Nk, 3)`` kinematic-body poses (required if there are any).
 
@@ -169,7 +174,8 @@ class Simulator:
                 its shape, or whose dtype differs from ``q``'s.
         """
         num_dynamic, num_kinematic = len(self.scene.dynamic), len(self.scene.kinematic)
-        what = f"(*B, {num_dynamic}, 3)"
+        names = ", ".join(self.scene.bodies[i].name for i in self.scene.dynamic)
+        what = f"(*B, {num_dynamic}, 3): batch, then the dynamic bodies ({names}), then (x, y, θ)"
         q = check_float("q", q, trailing=(num_dynamic, 3), min_ndim=2, what=what)
         batch = q.shape[:-2]
         if v is None:
