@@ -8,9 +8,9 @@ from dataclasses import replace
 import pytest
 import torch
 
+from torchcontact.experiments import box_scene
 from torchcontact.filters import RBPF, Gaussian, PlanarContactModel, fit_parameters
-from torchcontact.geometry import HalfPlane, Polygon
-from torchcontact.sim import Body, Scene, Simulator
+from torchcontact.sim import Simulator
 
 F64 = torch.float64
 
@@ -51,22 +51,11 @@ def test_a_flat_direction_has_no_standard_error() -> None:
     assert math.isnan(float(fit.standard_errors["a"]))
 
 
-def _box_scene(mu: torch.Tensor | float) -> Scene:
-    return Scene(
-        bodies=(
-            Body("ground", HalfPlane.ground(), kind="static"),
-            Body("box", Polygon.box(0.2, 0.1), mass=1.0),
-        ),
-        friction=mu,
-        h=0.01,
-    )
-
-
 def test_friction_of_a_box_sliding_to_a_stop() -> None:
     """Eight boxes slide at about 1 m/s to a stop (μ = 0.37) under a 2 mm camera; the RBPF's
     evidence over its two modes (sliding, sticking) recovers μ within three standard errors,
     and the standard error is a few thousandths."""
-    true = _box_scene(0.37)
+    true = box_scene(0.37)
     simulator = Simulator(true)
     generator = torch.Generator().manual_seed(0)
     B, T = 8, 40
@@ -90,7 +79,7 @@ def test_friction_of_a_box_sliding_to_a_stop() -> None:
     )
 
     def log_evidence(theta: dict[str, torch.Tensor]) -> torch.Tensor:
-        rbpf = RBPF(replace(model, scene=_box_scene(theta["mu"])), 8, proposal="all_modes")
+        rbpf = RBPF(replace(model, scene=box_scene(theta["mu"])), 8, proposal="all_modes")
         rng = torch.Generator().manual_seed(1)
         belief = rbpf.init(prior)
         for t in range(T):
