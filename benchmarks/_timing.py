@@ -31,10 +31,8 @@ def pin_to_quietest_cpu(*, probes: int = 5) -> dict[str, object]:
     """Pin this process to the CPU on which a pure-Python probe loop runs fastest.
 
     On a shared virtual machine one virtual CPU can be slower than another for a whole run
-    (it shares a physical core with other load): bench_filters' contact-model step timed
-    1.4–1.5 ms on one CPU and 1.7–2.1 ms on the other, alternating, minutes apart. Timing
-    every method on the quietest CPU compares them under the same conditions and makes runs
-    comparable. Where affinity is not supported (macOS, Windows) nothing is pinned.
+    (it shares a physical core with other load), by tens of percent. Timing every method on
+    the quietest CPU compares them under the same conditions and makes runs comparable. Where affinity is not supported (macOS, Windows) nothing is pinned.
 
     Returns:
         ``{"pinned_cpu": int | None, "probe_ns": {cpu: best ns per iteration}}`` for the
