@@ -150,6 +150,44 @@ def test_planar_slots_in_float32_match_float64() -> None:
     assert float((narrow.active == wide.active).double().mean()) > 0.99
 
 
+@pytest.mark.parametrize(
+    "chosen",
+    [[8, 6, 7], [0, 5, 1], [4], list(range(9))],
+    ids=["half-planes", "polygons", "one", "all"],
+)
+def test_a_subtable_computes_its_groups_slots(chosen: list[int]) -> None:
+    """The groups' slots of a subtable (its shapes' poses selected) against the full table's:
+    the same rows, so the same numbers, with the padding cut (three half-plane groups need one
+    edge, not five)."""
+    shapes, poses, pairs = _random_scene(4)
+    table = planar_slot_table(shapes, pairs, margin=0.05)
+    sub, picked, slots = table.subtable(chosen)
+    full = planar_slots(table, poses)
+    part = planar_slots(sub, poses.index_select(-2, picked))
+    starts = [0, *torch.tensor([len(shapes[r].vertices) for r, _ in pairs]).cumsum(0).tolist()]
+    expected = [
+        k for g in range(len(pairs)) if g in chosen for k in range(starts[g], starts[g + 1])
+    ]
+    assert slots.tolist() == expected
+    assert picked.tolist() == sorted({i for g in chosen for i in pairs[g]})
+    assert sub.num_slots == len(expected)
+    if chosen == [8, 6, 7]:
+        assert sub.facing_offset.shape[-1] == 1  # one edge: the half-plane's
+    torch.testing.assert_close(part.points, full.points[:, slots], rtol=0, atol=1e-15)
+    torch.testing.assert_close(part.normals, full.normals[:, slots], rtol=0, atol=1e-15)
+    torch.testing.assert_close(part.phi, full.phi[:, slots], rtol=0, atol=1e-15)
+    assert part.active.tolist() == full.active[:, slots].tolist()
+    assert bool(part.active.any())
+
+
+def test_bad_subtables_name_the_groups() -> None:
+    shapes, _, pairs = _random_scene(4)
+    table = planar_slot_table(shapes, pairs, margin=0.05)
+    for groups in ([], [0, 0], [9], [-1]):
+        with pytest.raises(ValueError, match=r"^groups must be distinct group indices"):
+            table.subtable(groups)
+
+
 @pytest.mark.parametrize("groups", GROUPS)
 def test_planar_slot_tangents_match_automatic_differentiation(groups: str) -> None:
     """Derivatives along random pose directions against ``jacfwd``."""

@@ -117,6 +117,70 @@ class PlanarSlotTable:
                 converted[item.name] = value.to(device=device, dtype=target)
         return replace(self, **converted)
 
+    def subtable(self, groups: Sequence[int]) -> tuple[PlanarSlotTable, Tensor, Tensor]:
+        """The table of some of its groups, over only the shapes they name.
+
+        Its groups are ``groups`` in that order, its slots theirs in this table's slot order,
+        its shapes theirs in this table's shape order; the vertex and edge padding is cut to
+        what they need. Its rows are this table's numbers, so :func:`planar_slots` on it
+        computes those slots with the same operations on the same numbers (the padding edges
+        it drops never win a slot's closest edge, the padding vertices are never slots).
+
+        Args:
+            groups: distinct indices of this table's groups (at least one).
+
+        Returns:
+            The table, the ``(Ns',)`` long indices of its shapes among this table's (select
+            their poses with ``poses.index_select(-2, shapes)``) and the ``(S',)`` long indices
+            of its slots among this table's.
+
+        Raises:
+            ValueError: ``groups`` is empty, repeats a group or names one that is not there.
+        """
+        G, E = self.facing_offset.shape[0], self.facing_offset.shape[-1]
+        V = self.frame.shape[-2] - E - 1
+        chosen = list(groups)
+        valid = all(isinstance(g, int) and 0 <= g < G for g in chosen)
+        if not chosen or not valid or len(set(chosen)) != len(chosen):
+            raise ValueError(f"groups must be distinct group indices in [0, {G}), got {groups!r}")
+        device = self.slot_source.device
+        picked = torch.tensor(chosen, dtype=torch.long, device=device)
+        renumber = torch.full((G,), -1, dtype=torch.long, device=device)
+        renumber[picked] = torch.arange(len(chosen), device=device)
+        slot_group = self.slot_source // V
+        slots = (renumber[slot_group] >= 0).nonzero().squeeze(-1)
+        vertex = self.slot_source[slots] % V
+        members = torch.cat([self.group_shapes[:G][picked], self.group_shapes[G:][picked]])
+        shapes = members.unique()  # sorted
+        reshape = torch.full((self.frame.shape[0],), -1, dtype=torch.long, device=device)
+        reshape[shapes] = torch.arange(len(shapes), device=device)
+        # The real edges of a group's other shape come first and have unit normals, the
+        # padding edges zero normals.
+        others = self.frame[self.group_shapes[G:][picked], V : V + E]
+        num_vertices = int(vertex.max()) + 1
+        num_edges = int((others != 0).any(-1).sum(-1).max())
+        edges = torch.arange(num_edges, device=device)
+        rows = torch.cat([torch.arange(num_vertices, device=device), V + edges])
+        rows = torch.cat([rows, rows.new_full((1,), V + E)])
+        return (
+            replace(
+                self,
+                frame=self.frame[shapes][:, rows],
+                frame_turned=self.frame_turned[shapes][:, rows],
+                translated=self.translated[rows],
+                group_shapes=reshape[members],
+                edge_offset=self.edge_offset[picked][..., torch.cat([edges, E + edges])],
+                facing_offset=self.facing_offset[picked][..., :num_edges],
+                edge_reach=self.edge_reach[picked][..., :num_edges],
+                tie_tolerance=self.tie_tolerance[picked],
+                slot_source=renumber[slot_group[slots]] * num_vertices + vertex,
+                slot_receiver=reshape[self.slot_receiver[slots]],
+                slot_other=reshape[self.slot_other[slots]],
+            ),
+            shapes,
+            slots,
+        )
+
 
 def planar_slot_table(
     shapes: Sequence[Polygon | HalfPlane],
