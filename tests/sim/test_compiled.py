@@ -21,7 +21,7 @@ import torch
 
 from torchcontact.envs import PegInHoleConfig, PegInHoleTask
 from torchcontact.geometry import HalfPlane, Polygon
-from torchcontact.sim import Body, Scene, SceneState, Simulator
+from torchcontact.sim import SOLVED_BY_GUESS, Body, Scene, SceneState, Simulator
 
 F64 = torch.float64
 
@@ -77,9 +77,9 @@ def _assert_impulses(actual: torch.Tensor, expected: torch.Tensor, largest: torc
 
 
 def test_compiled_box_rollouts_equal_eager(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Seeded rollouts of sliding, tipping and resting boxes; then a batch whose previous
-    modes are wrong (every slot sliding the wrong way) takes the eager path whole, with the
-    same answer."""
+    """Seeded rollouts of sliding, tipping and resting boxes; then a batch half of whose
+    entries have wrong previous modes (every slot sliding the wrong way): those take the eager
+    step (one call, on them), with the same answers."""
     calls = _count_eager_steps(monkeypatch)
     steps = 40
     for seed in (0, 1):
@@ -96,15 +96,17 @@ def test_compiled_box_rollouts_equal_eager(monkeypatch: pytest.MonkeyPatch) -> N
         _assert_impulses(actual.pt, expected.pt, expected.pn)
         torch.testing.assert_close(actual.solver, expected.solver, rtol=0, atol=0)
 
-    # Resting and sliding boxes after a few steps, given wrong previous modes.
+    # Boxes after a few steps, half of them given wrong previous modes.
     settled = eager.rollout(state, steps=5)
     last = SceneState(
         q=settled.q[-1], v=settled.v[-1], q_kinematic=settled.q_kinematic[-1], mode=settled.mode[-1]
     )
-    wrong = replace(last, mode=torch.where(last.mode == 2, 3, 2))
+    flipped = torch.where(last.mode == 2, 3, 2)
+    wrong = replace(last, mode=torch.where(torch.arange(6)[:, None] < 3, flipped, last.mode))
     before = len(calls)
     actual = compiled.step(wrong)
     assert len(calls) - before == 1
+    assert bool((actual.solver[3:] == SOLVED_BY_GUESS).all())
     expected = eager.step(wrong)
     _assert_same(actual.state, expected.state)
     _assert_impulses(actual.pn, expected.pn, expected.pn)

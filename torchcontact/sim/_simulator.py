@@ -144,9 +144,9 @@ class Simulator:
             ``torchcontact._compiled``; the first step compiles, tens of seconds): assemble
             the problem on all ``K`` slots (fixed shapes, no compaction), solve it at the
             previous step's modes with ``solve_mode``, check consistency and read the
-            canonical modes, with no host synchronisation; then one synchronisation: if every
-            entry of the batch is consistent (``solver == 0``) the step is done, otherwise the
-            whole step is taken again by steps 1–5. The results equal those of
+            canonical modes, with no host synchronisation; then one synchronisation: the
+            entries that are consistent (``solver == 0``) are done, the others take steps 1–5
+            as a batch of their own. The results equal those of
             ``compiled=False`` to rounding. With gradients enabled and an input that requires
             grad (or scene masses, inertias or friction that do), steps run eagerly.
     """
@@ -366,8 +366,9 @@ class Simulator:
         force: Tensor | None,
         friction: Tensor | None,
     ) -> tuple[Solution, Tensor, SlotGeometry]:
-        """The compiled step at the previous modes (``compiled``), else or where it is not
-        consistent :meth:`_step_compacted`; same returns."""
+        """The compiled step at the previous modes (``compiled``), and :meth:`_step_compacted`
+        for the entries where it is not consistent (for all without ``compiled``); same
+        returns."""
         if not self.compiled:
             return self._step_compacted(state, control, force, friction)
         batch, K = state.batch_shape, self.scene.num_slots
@@ -404,21 +405,34 @@ class Simulator:
                 flat(force),
                 flat(friction),
             )
-        if not bool(good.all()):  # the one host synchronisation
-            return self._step_compacted(state, control, force, friction)
+        device = state.q.device
         status = SolveStatus(
-            converged=good.reshape(batch),
-            residual=residual.reshape(batch),
-            iterations=torch.ones(batch, dtype=torch.long, device=state.q.device),
+            converged=good,
+            residual=residual,
+            iterations=torch.ones(P, dtype=torch.long, device=device),
         )
-        solution = Solution(
-            v_next=v_next.reshape(*batch, 3 * Nd),
-            pn=pn.reshape(*batch, K),
-            pt=pt.reshape(*batch, K, 2),
-            mode=mode.reshape(*batch, K),
-            status=status,
-        )
-        solver = torch.full(batch, SOLVED_BY_GUESS, dtype=torch.long, device=state.q.device)
+        solution = Solution(v_next=v_next, pn=pn, pt=pt, mode=mode, status=status)
+        solver = torch.full((P,), SOLVED_BY_GUESS, dtype=torch.long, device=device)
+        redo = torch.nonzero(~good).squeeze(-1)  # the one host synchronisation
+        if redo.numel():
+            # The entries whose previous modes fail take the eager step, as a batch of their own.
+
+            def pick(t: Tensor | None) -> Tensor | None:
+                return None if t is None else t.reshape(P, *t.shape[len(batch) :])[redo]
+
+            subset = SceneState(
+                q=state.q.reshape(P, Nd, 3)[redo],
+                v=state.v.reshape(P, Nd, 3)[redo],
+                q_kinematic=state.q_kinematic.reshape(P, Nk, 3)[redo],
+                mode=state.mode.reshape(P, K)[redo],
+            )
+            eager, codes, _ = self._step_compacted(
+                subset, pick(control), pick(force), pick(friction)
+            )
+            solution = solution.scatter(redo, eager)
+            solver = solver.index_put((redo,), codes)
+        solution = solution.map_tensors(lambda t: t.reshape(*batch, *t.shape[1:]))
+        solver = solver.reshape(batch)
         geometry = SlotGeometry(
             points=geometry.points.reshape(*batch, K, 2),
             normals=geometry.normals.reshape(*batch, K, 2),
