@@ -146,9 +146,12 @@ class Simulator:
             previous step's modes with ``solve_mode``, check consistency and read the
             canonical modes, with no host synchronisation; then one synchronisation: the
             entries that are consistent (``solver == 0``) are done, the others take steps 1–5
-            as a batch of their own. The results equal those of
-            ``compiled=False`` to rounding. With gradients enabled and an input that requires
-            grad (or scene masses, inertias or friction that do), steps run eagerly.
+            as a batch of their own. The results equal those of ``compiled=False`` to
+            rounding. It pays where the step's cost is the dispatch of small operations
+            (small batches); on large batches the eager step's compaction to the candidate
+            slots does less arithmetic. With gradients enabled and an input that requires grad
+            (or scene masses, inertias or friction that do), steps run eagerly, so that
+            gradients flow.
     """
 
     scene: Scene
