@@ -134,3 +134,26 @@ def test_compiled_peg_in_hole_equals_eager(monkeypatch: pytest.MonkeyPatch) -> N
     for a, e in zip(actual, expected, strict=True):
         _assert_same(a.state, e.state)
         _assert_impulses(a.pn, e.pn, e.pn)
+
+
+def test_compiled_steps_with_gradients_run_eagerly(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With an input that requires grad the step is the eager one (no compilation), and its
+    gradient reaches the input."""
+    calls = _count_eager_steps(monkeypatch)
+    eager, state = _boxes(3, 0)
+    compiled = replace(eager, compiled=True)
+    state = eager.rollout(state, steps=2)
+    q = state.q[-1].clone().requires_grad_(True)
+    start = SceneState(q=q, v=state.v[-1], q_kinematic=state.q_kinematic[-1], mode=state.mode[-1])
+    calls.clear()
+    result = compiled.step(start)
+    assert len(calls) == 1
+    result.state.q.sum().backward()
+    assert q.grad is not None
+    assert bool(torch.isfinite(q.grad).all())
+
+
+def test_compiled_must_be_a_bool() -> None:
+    eager, _ = _boxes(1, 0)
+    with pytest.raises(ValueError, match="compiled: expected a bool"):
+        Simulator(eager.scene, compiled=1)  # type: ignore[arg-type]
