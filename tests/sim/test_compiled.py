@@ -5,9 +5,10 @@ Each test compiles the step once (tens of seconds on a CPU). Tolerances: the com
 solves the uncompacted problem (all ``K`` slots, in slot order) with fused loops, so its
 results differ from the eager step's by rounding amplified by the conditioning of the
 mode-decoupled system; velocities and poses, unique whatever the impulse split, agree to
-1e-10 relative; impulses, whose split on redundant contacts is set by the Tikhonov
-regularisation (ε = √eps · max|diag A|, amplifying rounding by up to 1/√eps ≈ 7e7), to 1e-6
-of the largest impulse.
+1e-10 relative (absolute: 1e-10 of the 0.1–1 m/s velocity scale; observed ~1e-13);
+impulses, whose split on redundant contacts is set by the Tikhonov regularisation
+(ε = √eps · max|diag A|, which amplifies rounding by up to 1/√eps: √eps ≈ 1.5e-8 of the
+largest impulse at worst), to 1e-7 of the largest impulse (observed ~1e-12).
 """
 
 from __future__ import annotations
@@ -65,14 +66,14 @@ def _boxes(batch: int, seed: int) -> tuple[Simulator, SceneState]:
 
 def _assert_same(actual: Any, expected: Any) -> None:
     """Poses, twists and modes of two states (or rollouts)."""
-    torch.testing.assert_close(actual.q, expected.q, rtol=1e-10, atol=1e-12)
-    torch.testing.assert_close(actual.v, expected.v, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(actual.q, expected.q, rtol=1e-10, atol=1e-11)
+    torch.testing.assert_close(actual.v, expected.v, rtol=1e-10, atol=1e-11)
     torch.testing.assert_close(actual.mode, expected.mode, rtol=0, atol=0)
 
 
 def _assert_impulses(actual: torch.Tensor, expected: torch.Tensor, largest: torch.Tensor) -> None:
-    """Impulses to 1e-6 of the largest normal impulse."""
-    scale = 1e-6 * float(largest.abs().max())
+    """Impulses to 1e-7 of the largest normal impulse."""
+    scale = 1e-7 * float(largest.abs().max())
     torch.testing.assert_close(actual, expected, rtol=0.0, atol=scale)
 
 
