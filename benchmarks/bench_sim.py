@@ -1,9 +1,7 @@
 """Simulator throughput: batched planar boxes vs MuJoCo stepping one box, in one run.
 
 Boxes on the ground (four corner slots each), a third sliding, a third tipping over a corner,
-a third resting, stepped ``T`` times (best of 3 rollouts) at B = 1, 64 and 1,024 scenes, one
-thread on the quietest CPU (``_timing.pin_to_quietest_cpu``), eagerly and with
-``Simulator(compiled=True)`` (its compilation in the warm-up, not timed), and the time of
+a third resting, stepped ``T`` times at B = 1, 64 and 1,024 scenes, one thread, and the time of
 the contact problem's assembly alone (:func:`~torchcontact.sim.contact_problem`, every slot,
 best of several repetitions) at the same states. MuJoCo (the
 optional ``bench`` extra) steps one free box on a plane for the same number of steps; its
@@ -23,7 +21,6 @@ import time
 from pathlib import Path
 
 import torch
-from _timing import pin_to_quietest_cpu  # benchmarks/ is on sys.path when run as a script
 
 from torchcontact.geometry import HalfPlane, Polygon
 from torchcontact.sim import (
@@ -66,15 +63,13 @@ def box_states(sim: Simulator, count: int) -> SceneState:
 
 
 def time_torchcontact(sim: Simulator, count: int, steps: int) -> tuple[float, float]:
-    """Seconds for ``steps`` steps of ``count`` scenes (best of 3), and the fast-path share."""
+    """Seconds for ``steps`` steps of ``count`` scenes, and the fast-path share."""
     state = box_states(sim, count)
-    seconds = float("inf")
+    sim.rollout(state, steps=2)  # warm-up
+    start = time.perf_counter()
     with torch.no_grad():
-        sim.rollout(state, steps=3)  # warm-up (the compiled step compiles at its second step)
-        for _ in range(3):
-            start = time.perf_counter()
-            run = sim.rollout(state, steps=steps)
-            seconds = min(seconds, time.perf_counter() - start)
+        run = sim.rollout(state, steps=steps)
+    seconds = time.perf_counter() - start
     return seconds, float((run.solver == SOLVED_BY_GUESS).double().mean())
 
 
@@ -114,7 +109,6 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="small sizes, for smoke tests")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    pinned = pin_to_quietest_cpu()
     scene = Scene(
         bodies=(
             Body("ground", HalfPlane.ground(), kind="static"),
@@ -124,7 +118,6 @@ def main() -> None:
         h=0.01,
     )
     sim = Simulator(scene)
-    compiled = Simulator(scene, compiled=True)
     sizes = (1, 64) if args.quick else (1, 64, 1024)
     steps = 20 if args.quick else 200
     mujoco_seconds = time_mujoco(20 * steps)
@@ -133,7 +126,6 @@ def main() -> None:
     rows = []
     for count in sizes:
         seconds, fast = time_torchcontact(sim, count, steps)
-        compiled_seconds, _ = time_torchcontact(compiled, count, steps)
         assembly = time_assembly(sim, count, steps // 4)
         rate = count * steps / seconds
         rows.append(
@@ -141,8 +133,6 @@ def main() -> None:
                 "B": count,
                 "box_steps_per_s": rate,
                 "ms_per_step": 1e3 * seconds / steps,
-                "compiled_ms_per_step": 1e3 * compiled_seconds / steps,
-                "compiled_box_steps_per_s": count * steps / compiled_seconds,
                 "assembly_ms": assembly,
                 "fast_path_share": fast,
                 "ratio_to_mujoco": None if mujoco_rate is None else rate / mujoco_rate,
@@ -156,20 +146,13 @@ def main() -> None:
     else:
         print(f"MuJoCo one box on a plane: {mujoco_rate:,.0f} steps/s on one core")
     print()
-    print(
-        "| B | ms / step | compiled ms / step | assembly ms | box-steps / s "
-        "| compiled box-steps / s | fast path | ratio to MuJoCo steps / s (compiled) |"
-    )
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("| B | ms / step | assembly ms | box-steps / s | fast path | ratio to MuJoCo steps / s |")
+    print("|---:|---:|---:|---:|---:|---:|")
     for row in rows:
-        ratio = "n/a"
-        if mujoco_rate is not None:
-            ratio = f"{row['box_steps_per_s'] / mujoco_rate:.2f}× "
-            ratio += f"({row['compiled_box_steps_per_s'] / mujoco_rate:.2f}×)"
+        ratio = "n/a" if row["ratio_to_mujoco"] is None else f"{row['ratio_to_mujoco']:.2f}×"
         print(
-            f"| {row['B']:,} | {row['ms_per_step']:.2f} | {row['compiled_ms_per_step']:.2f} "
-            f"| {row['assembly_ms']:.2f} | {row['box_steps_per_s']:,.0f} "
-            f"| {row['compiled_box_steps_per_s']:,.0f} "
+            f"| {row['B']:,} | {row['ms_per_step']:.2f} | {row['assembly_ms']:.2f} "
+            f"| {row['box_steps_per_s']:,.0f} "
             f"| {100 * row['fast_path_share']:.0f}% | {ratio} |"
         )
     if not args.quick:
@@ -178,7 +161,6 @@ def main() -> None:
             "machine": platform.platform(),
             "torch": torch.__version__,
             "threads": torch.get_num_threads(),
-            "pinned_cpu": pinned["pinned_cpu"],
             "steps": steps,
             "mujoco_steps_per_s": mujoco_rate,
             "rows": rows,

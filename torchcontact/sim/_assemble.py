@@ -296,13 +296,7 @@ class SlotState:
 def slot_state(scene: Scene, q: Tensor, q_kinematic: Tensor, control: Tensor | None) -> SlotState:
     """The :class:`SlotState` of a flat batch: dynamic poses ``q (P, Nd, 3)``, kinematic poses
     ``q_kinematic (P, Nk, 3)`` and twists ``control (P, Nk, 3)`` (or ``None``)."""
-    return layout_slot_state(scene_layout(scene, q.dtype, q.device), q, q_kinematic, control)
-
-
-def layout_slot_state(
-    layout: SceneLayout, q: Tensor, q_kinematic: Tensor, control: Tensor | None
-) -> SlotState:
-    """:func:`slot_state` from the scene's layout (no cache lookup: for compiled code)."""
+    layout = scene_layout(scene, q.dtype, q.device)
     poses = shape_poses(layout, q, q_kinematic)
     geometry = planar_slots(layout.slots, poses)
     normal = geometry.normals

@@ -11,29 +11,18 @@ import torch
 from torch import Tensor
 
 from torchcontact._checks import check_batched, check_float, check_int, check_real
-from torchcontact._compiled import kernel
 from torchcontact.contact import (
     ContactProblem,
     Method,
     Solution,
-    SolveStatus,
-    consistent_with_mode,
     contact_mode,
     is_consistent,
     solve,
     solve_active_set,
     solve_mode,
-    solve_mode_unchecked,
 )
-from torchcontact.contact._lcp import default_tolerance
 from torchcontact.geometry import SlotGeometry
-from torchcontact.sim._assemble import (
-    SceneLayout,
-    assemble,
-    layout_slot_state,
-    scene_layout,
-    slot_state,
-)
+from torchcontact.sim._assemble import assemble, slot_state
 from torchcontact.sim._scene import Scene
 from torchcontact.sim._state import SceneState
 
@@ -140,18 +129,6 @@ class Simulator:
         retry_sticking: retry from all-sticking modes after the first fallback solver.
         retry_residual: largest LCP residual (:func:`~torchcontact.contact.lcp_residual`) of
             an accepted, unconverged retry.
-        compiled: first try each step as one :func:`torch.compile` kernel (see
-            ``torchcontact._compiled``; the first step compiles, tens of seconds): assemble
-            the problem on all ``K`` slots (fixed shapes, no compaction), solve it at the
-            previous step's modes with ``solve_mode``, check consistency and read the
-            canonical modes, with no host synchronisation; then one synchronisation: the
-            entries that are consistent (``solver == 0``) are done, the others take steps 1–5
-            as a batch of their own. The results equal those of ``compiled=False`` to
-            rounding. It pays where the step's cost is the dispatch of small operations
-            (small batches); on large batches the eager step's compaction to the candidate
-            slots does less arithmetic. With gradients enabled and an input that requires grad
-            (or scene masses, inertias or friction that do), steps run eagerly, so that
-            gradients flow.
     """
 
     scene: Scene
@@ -159,7 +136,6 @@ class Simulator:
     active_set_iterations: int = 4
     retry_sticking: bool = True
     retry_residual: float = 1e-6
-    compiled: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.scene, Scene):
@@ -173,8 +149,6 @@ class Simulator:
         if not isinstance(self.retry_sticking, bool):
             raise ValueError(f"retry_sticking must be a bool, got {self.retry_sticking!r}")
         check_real("retry_residual", self.retry_residual, low=0.0)
-        if not isinstance(self.compiled, bool):
-            raise ValueError(f"compiled: expected a bool, got {self.compiled!r}")
 
     def initial_state(
         self,
@@ -256,7 +230,7 @@ class Simulator:
             check_batched("friction", friction, shape=(*batch, K), like=state.q, like_name="q")
             if friction.numel() and float(friction.min()) < 0:
                 raise ValueError(f"friction must be >= 0, got minimum {float(friction.min())}")
-        solution, solver, geometry = self._step_at_modes(state, control, force, friction)
+        solution, solver, geometry = self._step_compacted(state, control, force, friction)
         h = self.scene.h
         v_next = solution.v_next.unflatten(-1, (len(self.scene.dynamic), 3))
         q_kinematic = state.q_kinematic
@@ -361,88 +335,6 @@ class Simulator:
             active=empty(K, dtype=torch.bool),
             solver=empty(dtype=torch.long),
         )
-
-    def _step_at_modes(
-        self,
-        state: SceneState,
-        control: Tensor | None,
-        force: Tensor | None,
-        friction: Tensor | None,
-    ) -> tuple[Solution, Tensor, SlotGeometry]:
-        """The compiled step at the previous modes (``compiled``), and :meth:`_step_compacted`
-        for the entries where it is not consistent (for all without ``compiled``); same
-        returns."""
-        if not self.compiled:
-            return self._step_compacted(state, control, force, friction)
-        batch, K = state.batch_shape, self.scene.num_slots
-        P, Nd, Nk = math.prod(batch), len(self.scene.dynamic), len(self.scene.kinematic)
-        layout = scene_layout(self.scene, state.q.dtype, state.q.device)
-        inputs = (state.q, state.v, state.q_kinematic, control, force, friction,
-                  layout.slots.frame, layout.static_poses)  # fmt: skip
-        differentiable = torch.is_grad_enabled() and any(
-            t is not None and t.requires_grad for t in inputs
-        )
-        if (
-            P == 0
-            or differentiable
-            or layout.mass_matrix is None
-            or layout.gravity_force is None
-            or layout.mu is None
-        ):
-            return self._step_compacted(state, control, force, friction)
-
-        def flat(t: Tensor | None) -> Tensor | None:
-            return None if t is None else t.reshape(P, *t.shape[len(batch) :])
-
-        step = kernel(_step_at_modes, compiled=True)
-        # Nothing requires grad here: one compiled variant whatever the grad mode.
-        with torch.no_grad():
-            v_next, pn, pt, mode, residual, good, geometry = step(
-                self.scene,
-                layout,
-                state.q.reshape(P, Nd, 3),
-                state.v.reshape(P, Nd, 3),
-                state.q_kinematic.reshape(P, Nk, 3),
-                state.mode.reshape(P, K),
-                flat(control),
-                flat(force),
-                flat(friction),
-            )
-        device = state.q.device
-        status = SolveStatus(
-            converged=good,
-            residual=residual,
-            iterations=torch.ones(P, dtype=torch.long, device=device),
-        )
-        solution = Solution(v_next=v_next, pn=pn, pt=pt, mode=mode, status=status)
-        solver = torch.full((P,), SOLVED_BY_GUESS, dtype=torch.long, device=device)
-        redo = torch.nonzero(~good).squeeze(-1)  # the one host synchronisation
-        if redo.numel():
-            # The entries whose previous modes fail take the eager step, as a batch of their own.
-
-            def pick(t: Tensor | None) -> Tensor | None:
-                return None if t is None else t.reshape(P, *t.shape[len(batch) :])[redo]
-
-            subset = SceneState(
-                q=state.q.reshape(P, Nd, 3)[redo],
-                v=state.v.reshape(P, Nd, 3)[redo],
-                q_kinematic=state.q_kinematic.reshape(P, Nk, 3)[redo],
-                mode=state.mode.reshape(P, K)[redo],
-            )
-            eager, codes, _ = self._step_compacted(
-                subset, pick(control), pick(force), pick(friction)
-            )
-            solution = solution.scatter(redo, eager)
-            solver = solver.index_put((redo,), codes)
-        solution = solution.map_tensors(lambda t: t.reshape(*batch, *t.shape[1:]))
-        solver = solver.reshape(batch)
-        geometry = SlotGeometry(
-            points=geometry.points.reshape(*batch, K, 2),
-            normals=geometry.normals.reshape(*batch, K, 2),
-            phi=geometry.phi.reshape(*batch, K),
-            active=geometry.active.reshape(*batch, K),
-        )
-        return solution, solver, geometry
 
     def _step_compacted(
         self,
@@ -562,45 +454,3 @@ class Simulator:
             pt=solution.pt.detach(),
         )
         return replace(solution, mode=canonical), solver
-
-
-def _step_at_modes(
-    scene: Scene,
-    layout: SceneLayout,
-    q: Tensor,
-    v: Tensor,
-    q_kinematic: Tensor,
-    mode: Tensor,
-    control: Tensor | None,
-    force: Tensor | None,
-    friction: Tensor | None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, SlotGeometry]:
-    """A step of a flat batch at given modes on all ``K`` slots, with no host synchronisation
-    (the kernel of ``Simulator(compiled=True)``).
-
-    Args:
-        scene: the scene.
-        layout: its layout (with its mass matrix, weights and friction).
-        q: ``(P, Nd, 3)`` dynamic-body poses; v: ``(P, Nd, 3)`` their twists.
-        q_kinematic: ``(P, Nk, 3)`` kinematic-body poses.
-        mode: ``(P, K)`` long modes to solve at.
-        control, force, friction: as for :meth:`Simulator.step`, flat, or ``None``.
-
-    Returns:
-        ``v_next (P, 3 Nd)``, ``pn (P, K)``, ``pt (P, K, 2)``, the canonical modes
-        ``(P, K)``, the LCP residual ``(P,)``, ``(P,)`` bool: the solution is consistent with
-        ``mode`` and converged, and the slot geometry (batch ``(P,)``).
-    """
-    slots = layout_slot_state(layout, q, q_kinematic, control)
-    P, K = mode.shape
-    keep = torch.arange(K, device=q.device).expand(P, K)
-    problem = assemble(scene, slots, v, keep, force=force, friction=friction)
-    mode = torch.where(problem.slot_mask, mode, 0)
-    solution = solve_mode_unchecked(problem, mode, sync_free=True)
-    v_next, pn, pt = solution.v_next, solution.pn, solution.pt
-    consistent = consistent_with_mode(
-        problem, v_next=v_next, pn=pn, pt=pt, mode=mode, atol=10 * default_tolerance(q.dtype)
-    )
-    canonical = contact_mode(problem, v_next=v_next, pn=pn, pt=pt)
-    good = consistent & solution.status.converged
-    return v_next, pn, pt, canonical, solution.status.residual, good, slots.geometry

@@ -1,5 +1,4 @@
-"""Opt-in :func:`torch.compile` of the filters' and the simulator's per-step kernels
-(``compiled=True``).
+"""Opt-in :func:`torch.compile` of the filters' per-step kernels (``compiled=True``).
 
 A step of the :class:`~torchcontact.filters.RBPF` on a contact model is about two thousand
 small tensor operations: the unrolled 6 × 6 Kalman algebra of ``_linalg`` over the particles,
@@ -19,11 +18,7 @@ What it costs:
 * the results equal the eager kernels' to rounding, not to the bit (fused loops sum in
   another order): about 1e-6 relative in float32, 1e-14 in float64.
 
-The simulator's kernel (the step at the previous modes, see
-:class:`~torchcontact.sim.Simulator`) is the same story: some 600 small operations per step.
-
-Each kernel is compiled once per process and shared by every filter, model and simulator that
-asks;
+Each kernel is compiled once per process and shared by every filter and model that asks;
 each of its variants (dtype, particle count below and above the sizes where the unrolled
 algebra changes its summation, models with and without shared noise) is one entry of
 dynamo's cache for the kernel. Past ``torch._dynamo.config.recompile_limit`` entries (8 by
