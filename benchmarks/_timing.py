@@ -32,7 +32,8 @@ def pin_to_quietest_cpu(*, probes: int = 5) -> dict[str, object]:
 
     On a shared virtual machine one virtual CPU can be slower than another for a whole run
     (it shares a physical core with other load), by tens of percent. Timing every method on
-    the quietest CPU compares them under the same conditions and makes runs comparable. Where affinity is not supported (macOS, Windows) nothing is pinned.
+    the quietest CPU compares them under the same conditions and makes runs comparable.
+    Where affinity is not supported (macOS, Windows) nothing is pinned.
 
     Returns:
         ``{"pinned_cpu": int | None, "probe_ns": {cpu: best ns per iteration}}`` for the
