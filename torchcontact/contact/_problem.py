@@ -198,14 +198,21 @@ class ContactProblem:
             "M": M, "v": v, "f": f, "Jn": Jn, "Jt": Jt, "phi": phi,
             "mu": mu, "mask": mask, "bn": bn, "bt": bt,
         }  # fmt: skip
-        trailing = {name: _TRAILING_DIMS[name] for name in _TENSOR_FIELDS}
-        batch = torch.broadcast_shapes(
-            *(value.shape[: value.dim() - trailing[name]] for name, value in values.items())
-        )
+        shapes = {
+            name: value.shape[: value.dim() - _TRAILING_DIMS[name]]
+            for name, value in values.items()
+        }
+        # The longest batch shape is usually every field's (or theirs broadcast from nothing):
+        # the general broadcast, a Python function, only where it is not.
+        batch = max(shapes.values(), key=len)
+        if any(shape and shape != batch for shape in shapes.values()):
+            batch = torch.broadcast_shapes(*shapes.values())
         problem = object.__new__(cls)
         for name, value in values.items():
-            tail = value.shape[value.dim() - trailing[name] :]
-            object.__setattr__(problem, name, value.expand(*batch, *tail))
+            if shapes[name] != batch:
+                tail = value.shape[value.dim() - _TRAILING_DIMS[name] :]
+                value = value.expand(*batch, *tail)
+            object.__setattr__(problem, name, value)
         object.__setattr__(problem, "h", float(h))
         return problem
 
