@@ -17,7 +17,7 @@ from torchcontact.filters._planar_linearization import ModeTable, linearize_mode
 from torchcontact.filters._planar_slots import SlotLayout, slot_layout
 from torchcontact.filters._rbpf_belief import RBPFBelief
 from torchcontact.filters._switching import LinearSwitchingModel, ModeDynamics
-from torchcontact.sim import Rollout, Scene, SceneState, contact_problem
+from torchcontact.sim import Rollout, Scene, SceneState, contact_problem, slot_friction
 from torchcontact.states import TactileArray, object_contacts
 
 STATE_DIM = 6  # (x, y, θ, vx, vy, ω)
@@ -569,20 +569,14 @@ class PlanarContactModel:
 
 def _physics_of(scene: Scene, device: torch.device) -> tuple[Tensor, Tensor]:
     """See :meth:`PlanarContactModel._physics`."""
-    f64 = torch.float64
-    parts = []
-    for group in scene.slot_groups:
-        friction = torch.as_tensor(scene.pair_mu(group.receiver, group.other), dtype=f64)
-        if friction.numel() != 1:
-            raise ValueError(
-                "scene: the linearization needs scalar friction coefficients, got a tensor of "
-                f"shape {tuple(friction.shape)}"
-            )
-        parts.append(friction.to(device).reshape(()).expand(group.count))
-    mu = torch.cat(parts)
-    body = scene.bodies[scene.dynamic[0]]
-    mass, inertia = body.mass_value().to(device), body.inertia_value().to(device)
-    return mu, torch.stack([mass, mass, inertia]).reciprocal()
+    mu = slot_friction(scene, dtype=torch.float64, device=device)
+    if mu.dim() != 1:
+        raise ValueError(
+            "scene: the linearization needs scalar friction coefficients, got per-slot "
+            f"frictions of shape {tuple(mu.shape)}"
+        )
+    # One dynamic body: the mass matrix is diag(m, m, I).
+    return mu, scene.mass_matrix().to(device).diagonal().reciprocal()
 
 
 def _check_state(x: object) -> None:

@@ -1,6 +1,6 @@
 """Planar scenes and the batched time-stepping contact simulator."""
 
-from torchcontact.sim._assemble import body_poses, contact_problem
+from torchcontact.sim._assemble import body_poses, contact_problem, slot_friction
 from torchcontact.sim._examples import pushed_box_rollout, pushed_box_scene
 from torchcontact.sim._penetration import penetration
 from torchcontact.sim._plot import draw_scene
@@ -35,4 +35,5 @@ __all__ = [
     "penetration",
     "pushed_box_rollout",
     "pushed_box_scene",
+    "slot_friction",
 ]

@@ -167,6 +167,30 @@ def _build_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> Sce
     )
 
 
+def slot_friction(scene: Scene, *, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """The friction coefficient of every slot, from the scene's pair frictions.
+
+    Tensors that require grad keep their graph; constant coefficients come from the scene's
+    cached layout.
+
+    Args:
+        scene: the scene.
+        dtype: floating dtype of the result.
+        device: its device.
+
+    Returns:
+        ``(*F, K)``, ``*F`` the broadcast batch shape of the friction tensors (``()`` when every
+        coefficient is a number or a scalar tensor).
+    """
+    layout = scene_layout(scene, dtype, device)
+    if layout.mu is not None:
+        return layout.mu
+    values = [
+        torch.as_tensor(source, dtype=dtype, device=device) for source in layout.friction_sources
+    ]
+    return torch.stack(torch.broadcast_tensors(*values), dim=-1)[..., layout.slot_friction]
+
+
 def _gravity_force(scene: Scene, dtype: torch.dtype, device: torch.device) -> Tensor:
     """``(Nd, 3)`` the dynamic bodies' weights ``(m gx, m gy, 0)`` (keeps a tensor mass's
     graph)."""
@@ -351,11 +375,7 @@ def assemble(
     elif layout.mu is not None:
         mu = layout.mu[keep]
     else:
-        values = [
-            torch.as_tensor(source, dtype=dtype, device=device).expand(P)
-            for source in layout.friction_sources
-        ]
-        mu = torch.stack(values, dim=-1).gather(1, layout.slot_friction[keep])
+        mu = slot_friction(scene, dtype=dtype, device=device).expand(P, -1).gather(1, keep)
     return ContactProblem.unchecked(
         M=M,
         v=v.flatten(-2),
