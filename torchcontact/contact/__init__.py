@@ -3,7 +3,8 @@
 The Stewart–Trinkle contact step (:class:`ContactProblem`) is solved exactly by Lemke's method,
 by OSQP with staggered projections, by batched projected Gauss–Seidel, or, with the contact
 mode known, by one differentiable linear solve (:func:`solve_mode`). That solve's kernel
-(:func:`tikhonov_system`, :func:`iterated_tikhonov`) and the settings of its regularisation
+(:func:`tikhonov_system`, :func:`iterated_tikhonov`), its friction-split weights
+(:func:`friction_split_weights`) and the settings of its regularisation
 (``SOLVE_MODE_REFINEMENTS``, ``SOLVE_MODE_WEIGHTED_REFINEMENTS``,
 ``SOLVE_MODE_FRICTION_COST``, ``SOLVE_MODE_MIN_LOAD_SHARE``) are exported for the code that
 differentiates it in closed form, the filters' per-mode linearization.
@@ -30,6 +31,7 @@ from torchcontact.contact._mode_solve import (
     SOLVE_MODE_MIN_LOAD_SHARE,
     SOLVE_MODE_REFINEMENTS,
     SOLVE_MODE_WEIGHTED_REFINEMENTS,
+    friction_split_weights,
     solve_mode,
     solve_mode_unchecked,
 )
@@ -60,6 +62,7 @@ __all__ = [
     "contact_mode",
     "delassus",
     "friction_direction",
+    "friction_split_weights",
     "is_consistent",
     "is_sliding",
     "iterated_tikhonov",

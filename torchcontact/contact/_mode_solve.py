@@ -201,6 +201,28 @@ def solve_mode_unchecked(
     return Solution(v_next=v_next, pn=pn, pt=pt, mode=mode, status=status)
 
 
+def friction_split_weights(normal_impulses: Tensor, *, dim: int = -1) -> Tensor:
+    """Regularisation weights of the sticking friction unknowns in ``solve_mode``'s second pass.
+
+    ``c · s / (pn⁺ + ρ s)`` per slot, with ``pn⁺`` the normal impulse clamped at zero, ``s`` the
+    largest of them (floored at eps), ``c = SOLVE_MODE_FRICTION_COST`` and
+    ``ρ = SOLVE_MODE_MIN_LOAD_SHARE`` (the normal unknowns weigh 1): friction costs more than
+    normal support, and least on the slots that carry the most load.
+
+    Args:
+        normal_impulses: the first pass's normal impulses, slots along ``dim``.
+        dim: the slot dimension.
+
+    Returns:
+        The weights, shaped like ``normal_impulses``.
+    """
+    load = normal_impulses.clamp(min=0.0)
+    # (floored at eps: with no load at all the weights only need to be finite, and a denormal
+    # floor would underflow to NaN in the backward pass)
+    share = load.amax(dim=dim, keepdim=True).clamp_min(torch.finfo(load.dtype).eps)
+    return SOLVE_MODE_FRICTION_COST * share / (load + SOLVE_MODE_MIN_LOAD_SHARE * share)
+
+
 def _split_friction(
     A: Tensor, b: Tensor, x: Tensor, sticks: Tensor, *, K: int, r: int, sync_free: bool
 ) -> Tensor:
@@ -233,12 +255,10 @@ def _split_friction(
         A, b, chosen = A.reshape(-1, m, m)[index], b.reshape(-1, m)[index], x.reshape(-1, m)[index]
     else:
         chosen = x
-    load = chosen[..., :K].clamp(min=0.0)
-    # (floored at eps: with no load at all the weights only need to be finite, and a denormal
-    # floor would underflow to NaN in the backward pass)
-    share = load.amax(dim=-1, keepdim=True).clamp_min(torch.finfo(x.dtype).eps)
-    tangent_weight = SOLVE_MODE_FRICTION_COST * share / (load + SOLVE_MODE_MIN_LOAD_SHARE * share)
-    weights = torch.cat([torch.ones_like(load), tangent_weight.repeat_interleave(r, dim=-1)], -1)
+    tangent_weight = friction_split_weights(chosen[..., :K])
+    weights = torch.cat(
+        [torch.ones_like(tangent_weight), tangent_weight.repeat_interleave(r, dim=-1)], -1
+    )
     split = _iterated_tikhonov(
         A, b, weights, refinements=SOLVE_MODE_WEIGHTED_REFINEMENTS, sync_free=sync_free
     )

@@ -138,8 +138,9 @@ def sliding_logs(settings: SlidingFit, experiment: int) -> SlidingLogs:
     nominal = box_scene(0.5)
     # The two modes of a flat sliding box (both bottom corners sliding, both sticking), from
     # a nominal rollout that slides and stops.
-    nominal_rollout = Simulator(nominal).rollout(
-        Simulator(nominal).initial_state(q=q[:1], v=v[:1]), steps=T
+    nominal_simulator = Simulator(nominal)
+    nominal_rollout = nominal_simulator.rollout(
+        nominal_simulator.initial_state(q=q[:1], v=v[:1]), steps=T
     )
     model = PlanarContactModel.from_rollout(
         nominal,

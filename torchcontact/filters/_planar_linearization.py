@@ -49,12 +49,11 @@ import torch
 from torch import Tensor
 
 from torchcontact.contact import (
-    SOLVE_MODE_FRICTION_COST,
-    SOLVE_MODE_MIN_LOAD_SHARE,
     SOLVE_MODE_REFINEMENTS,
     SOLVE_MODE_WEIGHTED_REFINEMENTS,
     ContactProblem,
     consistent_with_mode,
+    friction_split_weights,
     iterated_tikhonov,
     tikhonov_system,
 )
@@ -203,10 +202,8 @@ def linearize_modes(
     impulses = iterated_tikhonov(first, b, refinements=SOLVE_MODE_REFINEMENTS)
     # Redundant sticking rows leave the impulse split free: solve_mode prefers normal support
     # and shares friction in proportion to the normal loads (kept for modes that stick).
-    load = impulses[..., :W, :].clamp(min=0.0)
-    share = load.amax(dim=-2, keepdim=True).clamp_min(torch.finfo(torch.float64).eps)
-    friction = SOLVE_MODE_FRICTION_COST * share / (load + SOLVE_MODE_MIN_LOAD_SHARE * share)
-    weighted = torch.cat([shift.expand_as(load), shift * friction], dim=-2)  # (..., 2W, 1)
+    friction = friction_split_weights(impulses[..., :W, :], dim=-2)
+    weighted = torch.cat([shift.expand_as(friction), shift * friction], dim=-2)  # (..., 2W, 1)
     second = tikhonov_system(A, weighted[..., 0], products=True)
     split = iterated_tikhonov(second, b, refinements=SOLVE_MODE_WEIGHTED_REFINEMENTS)
     sticky = sticks.any(dim=-1)[:, :, None, None, None]
