@@ -11,7 +11,18 @@ from types import ModuleType
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from torchcontact import contact, envs, experiments, filters, geometry, rl, robots, sim, states
+    from torchcontact import (
+        contact,
+        envs,
+        experiments,
+        filters,
+        geometry,
+        logs,
+        rl,
+        robots,
+        sim,
+        states,
+    )
 
 __all__ = [
     "__version__",
@@ -20,6 +31,7 @@ __all__ = [
     "experiments",
     "filters",
     "geometry",
+    "logs",
     "rl",
     "robots",
     "sim",

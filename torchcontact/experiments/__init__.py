@@ -16,7 +16,8 @@ rollouts (:class:`TriangleGrasp` holds the settings); :func:`run_estimators` tra
 the contact RBPF (:func:`grasp_contact_model`), the simulator particle filter, an EKF and held
 vision; :func:`evaluate_tracking`, :func:`grasp_summary` and :func:`tracking_table` score them
 and :func:`plot_grasp_snapshots`, :func:`plot_tracking_errors` and :func:`plot_mode_timeline`
-draw them.
+draw them. :func:`write_grasp_logs` writes the trials as run logs (:mod:`torchcontact.logs`)
+and :func:`replay` runs an estimator over logs, scored as in the experiment.
 
 Fitting (:mod:`torchcontact.filters`): :func:`sliding_logs` simulates boxes sliding to a stop
 under a noisy camera (:class:`SlidingFit` holds the settings), :func:`sliding_evidence` is the
@@ -44,6 +45,15 @@ from torchcontact.experiments._friction_fit import (
     sliding_evidence,
     sliding_logs,
 )
+from torchcontact.experiments._grasp_logs import (
+    FINGER_JOINTS,
+    Replay,
+    grasp_run_logs,
+    grasp_trials_from_logs,
+    logged_settings,
+    replay,
+    write_grasp_logs,
+)
 from torchcontact.experiments._peg_execution import (
     NUM_BELIEF_FEATURES,
     SETTINGS,
@@ -64,6 +74,7 @@ from torchcontact.experiments._peg_learning import (
 )
 from torchcontact.experiments._q_lookup import QLookup
 from torchcontact.experiments._triangle_grasp import (
+    FILTER_SEED_OFFSETS,
     GRASP_METHODS,
     EstimatorRuns,
     GraspTrials,
@@ -72,6 +83,7 @@ from torchcontact.experiments._triangle_grasp import (
     calibrate_pf,
     evaluate_tracking,
     grasp_contact_model,
+    grasp_mode_table,
     grasp_schedule,
     grasp_summary,
     grasp_tactile_readings,
@@ -96,6 +108,8 @@ from torchcontact.experiments._triangle_grasp_plots import (
 
 __all__ = [
     "CHECKPOINT",
+    "FILTER_SEED_OFFSETS",
+    "FINGER_JOINTS",
     "FITTERS",
     "FIT_METHODS",
     "GRASP_METHODS",
@@ -109,6 +123,7 @@ __all__ = [
     "PegLearning",
     "PotentialShaping",
     "QLookup",
+    "Replay",
     "RoundResult",
     "Setting",
     "SlidingFit",
@@ -126,11 +141,15 @@ __all__ = [
     "evaluate_settings",
     "evaluate_tracking",
     "grasp_contact_model",
+    "grasp_mode_table",
+    "grasp_run_logs",
     "grasp_schedule",
     "grasp_summary",
     "grasp_tactile_readings",
     "grasp_trials",
+    "grasp_trials_from_logs",
     "load_checkpoint",
+    "logged_settings",
     "min_vertex_height",
     "new_run_dir",
     "open_run",
@@ -139,6 +158,7 @@ __all__ = [
     "plot_tracking_errors",
     "qmdp_actions",
     "read_checkpoint",
+    "replay",
     "results_table",
     "round_seed",
     "run_ekf",
@@ -155,4 +175,5 @@ __all__ = [
     "tracking_table",
     "triangle_scene",
     "triangle_tactile_array",
+    "write_grasp_logs",
 ]

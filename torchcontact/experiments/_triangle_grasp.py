@@ -69,6 +69,8 @@ CALIBRATION_PARTICLES = (8, 64)  # plain-PF particle counts timed to fit time(N)
 CALIBRATION_ROUNDS = 2  # PF runs at fitted particle counts, at most
 CALIBRATION_TOLERANCE = 0.1  # relative miss of the RBPF's CPU time that ends the calibration
 MIN_STEPS = 8  # time steps that give every phase of grasp_schedule() at least one step
+#: Each particle filter draws from the seed ``settings.seed`` plus its offset.
+FILTER_SEED_OFFSETS = {"rbpf": 2, "pf": 3, "pf_same_n": 4}
 
 
 @dataclass(frozen=True)
@@ -297,11 +299,18 @@ class GraspTrials:
         return int(self.y.shape[1])
 
 
-def grasp_trials(settings: TriangleGrasp) -> GraspTrials:
-    """Training rollouts (mode table, transition), evaluation trials and their measurements."""
+def grasp_mode_table(settings: TriangleGrasp) -> tuple[Tensor, Tensor]:
+    """The ``(K, L)`` mode table and the ``(K, K)`` mode transition of the filters, from
+    ``settings.train_trials`` training rollouts (seed ``10_000 + settings.seed``)."""
     _, train, _, _ = simulate_grasps(settings, settings.train_trials, seed=10_000 + settings.seed)
     table, train_ids, _ = collect_modes(train.mode)
     transition = empirical_transition(train_ids, table.shape[0], smoothing=0.1)
+    return table, transition
+
+
+def grasp_trials(settings: TriangleGrasp) -> GraspTrials:
+    """Training rollouts (mode table, transition), evaluation trials and their measurements."""
+    table, transition = grasp_mode_table(settings)
     scene, truth, controls, _ = simulate_grasps(settings, settings.trials, seed=settings.seed)
     T, B = settings.steps, settings.trials
     gen = torch.Generator().manual_seed(settings.seed + 1)
@@ -584,7 +593,8 @@ def run_estimators(
     """Run every estimator of :data:`GRASP_METHODS` on the trials, timed.
 
     The RBPF draws from the seed ``settings.seed + 2``, the plain PF from ``+ 3`` (also its
-    calibration runs), ``pf_same_n`` (when ``settings.reference_pf``) from ``+ 4``.
+    calibration runs), ``pf_same_n`` (when ``settings.reference_pf``) from ``+ 4``
+    (:data:`FILTER_SEED_OFFSETS`).
 
     Args:
         settings: the settings.
@@ -597,8 +607,8 @@ def run_estimators(
         The outputs, timings, particle counts and the PF's calibration.
     """
 
-    def generator(offset: int) -> torch.Generator:
-        return torch.Generator().manual_seed(settings.seed + offset)
+    def generator(method: str) -> torch.Generator:
+        return torch.Generator().manual_seed(settings.seed + FILTER_SEED_OFFSETS[method])
 
     def report(stage: str) -> None:
         if done is not None:
@@ -608,24 +618,24 @@ def run_estimators(
     timings: dict[str, Timing] = {}
     particles = {"rbpf": settings.rbpf_particles}
     outputs["rbpf"], timings["rbpf"] = timed(
-        lambda: run_rbpf(model, trials, settings, generator(2))
+        lambda: run_rbpf(model, trials, settings, generator("rbpf"))
     )
     report("rbpf")
     calibration: dict[int, float] = {}
     if settings.pf_particles == 0:
         particles["pf"], outputs["pf"], timings["pf"], calibration = calibrate_pf(
-            trials, settings, timings["rbpf"].cpu, settings.seed + 3
+            trials, settings, timings["rbpf"].cpu, settings.seed + FILTER_SEED_OFFSETS["pf"]
         )
     else:
         particles["pf"] = settings.pf_particles
         outputs["pf"], timings["pf"] = timed(
-            lambda: run_pf(trials, settings, settings.pf_particles, generator(3))
+            lambda: run_pf(trials, settings, settings.pf_particles, generator("pf"))
         )
     report("pf")
     if settings.reference_pf:
         particles["pf_same_n"] = settings.rbpf_particles
         outputs["pf_same_n"], timings["pf_same_n"] = timed(
-            lambda: run_pf(trials, settings, settings.rbpf_particles, generator(4))
+            lambda: run_pf(trials, settings, settings.rbpf_particles, generator("pf_same_n"))
         )
     report("pf_same_n")
     outputs["ekf"], timings["ekf"] = timed(lambda: run_ekf(settings, trials))
