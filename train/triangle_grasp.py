@@ -20,7 +20,8 @@ Usage::
     python train/triangle_grasp.py --trials 64 --name triangle_grasp
 
 writes TensorBoard logs, ``results.md``, ``metrics.json`` and the plots to a new run folder,
-``runs/triangle_grasp__<seed>__<unix time>``.
+``runs/triangle_grasp__<seed>__<unix time>``; with ``--write-logs`` also each trial as an
+MCAP run log in its ``logs/`` folder (``train/replay.py`` replays an estimator over them).
 """
 
 from __future__ import annotations
@@ -58,6 +59,7 @@ from torchcontact.experiments import (
     plot_tracking_errors,
     run_estimators,
     tracking_table,
+    write_grasp_logs,
 )
 
 
@@ -71,6 +73,8 @@ class Args(TriangleGrasp):
     """parent of the run folders"""
     fast: bool = False
     """tiny budget (tests)"""
+    write_logs: bool = False
+    """also write each trial as an MCAP run log, <run folder>/logs/trial_<b>.mcap"""
 
 
 def check_args(args: Args) -> None:
@@ -119,6 +123,8 @@ def run(args: Args) -> dict[str, Any]:
     )
     progress.update()
     run_dir = new_run_dir(out_dir=args.out_dir, name=args.name, seed=args.seed)
+    if args.write_logs:
+        write_grasp_logs(run_dir / "logs", args, trials)
     writer = SummaryWriter(str(run_dir))
     runs = run_estimators(args, trials, model, done=lambda _: progress.update())
     outputs, timings, particles = runs.outputs, runs.timings, runs.particles

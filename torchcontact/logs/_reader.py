@@ -14,6 +14,7 @@ import torch
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
 from torch import Tensor
+from zstandard import ZstdError
 
 from torchcontact.logs._run_log import ContactTruth, RunLog
 from torchcontact.logs._schemas import (
@@ -59,9 +60,9 @@ def _records(path: Path) -> dict[str, list[tuple[int, bytes]]]:
                 found[channel.topic].append((message.log_time, message.data))
     except (McapError, OSError, EOFError, struct.error) as error:
         raise ValueError(f"path {str(path)!r} is not a readable MCAP file ({error})") from None
-    except (KeyError, IndexError, UnicodeDecodeError, RuntimeError) as error:
+    except (KeyError, IndexError, UnicodeDecodeError, RuntimeError, ZstdError) as error:
         # what the mcap reader raises on a corrupt record (an unknown id, a truncated or
-        # undecodable chunk)
+        # undecodable chunk: zstd's error; lz4's is a RuntimeError)
         raise ValueError(f"path {str(path)!r} is a corrupt MCAP file ({error!r})") from None
     return found
 
