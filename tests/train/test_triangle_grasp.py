@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from tests.train import load_script
+from torchcontact.logs import read_run
 
 
 @pytest.fixture(scope="module")
@@ -28,7 +29,8 @@ def result(module: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> Iter
     threads = torch.get_num_threads()
     torch.set_num_threads(1)  # the script's timings are single-threaded
     try:
-        yield module.run(module.Args(name="tiny", out_dir=str(out), fast=True, seed=0))
+        args = module.Args(name="tiny", out_dir=str(out), fast=True, seed=0, write_logs=True)
+        yield module.run(args)
     finally:
         torch.set_num_threads(threads)
 
@@ -86,11 +88,20 @@ def test_ground_truth_stays_above_the_table(result: dict) -> None:
     assert result["min_vertex_height"] > -1e-3  # at most the LCP's sub-millimetre slack
 
 
+def test_write_logs_writes_each_trial_as_a_run_log(result: dict) -> None:
+    paths = sorted((Path(result["run_dir"]) / "logs").glob("*.mcap"))
+    assert [p.name for p in paths] == ["trial_000.mcap", "trial_001.mcap"]  # --fast: 2 trials
+    log = read_run(paths[1])
+    assert log.steps == 48
+    assert log.source["trial"] == 1
+    assert log.source["settings"]["rbpf_particles"] == 20  # the --fast budget's settings
+
+
 def test_help_lists_the_arguments(module: ModuleType, capsys: pytest.CaptureFixture[str]) -> None:
     with pytest.raises(SystemExit):
         module.main(["--help"])
     text = capsys.readouterr().out
-    for flag in ("--rbpf-particles", "--pf-particles", "--trials", "--gap-sigma"):
+    for flag in ("--rbpf-particles", "--pf-particles", "--trials", "--gap-sigma", "--write-logs"):
         assert flag in text
 
 

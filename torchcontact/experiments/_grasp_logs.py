@@ -192,13 +192,6 @@ def grasp_trials_from_logs(logs: Sequence[RunLog], settings: TriangleGrasp) -> G
     for i, log in enumerate(logs):
         if not isinstance(log, RunLog):
             raise ValueError(f"logs[{i}]: expected a RunLog, got {type(log).__name__}")
-        expected = (H, _BODY, FINGER_JOINTS, S, T, (_BODY,))
-        got = (log.h, log.body, log.joints, log.tactile.shape[1], log.steps, log.bodies)
-        if got != expected:
-            raise ValueError(
-                f"logs[{i}] ({log.name}): expected a triangle-grasp run (h, body, joints, "
-                f"tactile sensors, steps, true bodies) = {expected}, got {got}"
-            )
         _require(i, log, "the prior (/estimate/prior)", log.prior_mean is not None)
         _require(i, log, "the true states (/ground_truth/state)", log.truth_pose is not None)
         _require(
@@ -207,6 +200,13 @@ def grasp_trials_from_logs(logs: Sequence[RunLog], settings: TriangleGrasp) -> G
         _require(
             i, log, "the true friction (/ground_truth/parameters)", "friction" in log.parameters
         )
+        expected = (H, _BODY, FINGER_JOINTS, S, T, (_BODY,))
+        got = (log.h, log.body, log.joints, log.tactile.shape[1], log.steps, log.bodies)
+        if got != expected:
+            raise ValueError(
+                f"logs[{i}] ({log.name}): expected a triangle-grasp run (h, body, joints, "
+                f"tactile sensors, steps, true bodies) = {expected}, got {got}"
+            )
     contacts = [log.truth_contacts for log in logs if log.truth_contacts is not None]
     if len({c.mode.shape[1] for c in contacts}) != 1:
         raise ValueError("logs: the logs' true contacts have different numbers of slots")
