@@ -151,7 +151,7 @@ def _stacked(
         k = index.get(time)
         if k is None or k not in instants:
             raise ValueError(
-                f"{where}: not at an instant of /robot/state (steps {instants.start} to "
+                f"{where}: not at an instant of /robot/state (instants {instants.start} to "
                 f"{instants.stop - 1})"
             )
         if at and at[-1] == k:

@@ -92,9 +92,11 @@ def write_run(path: str | os.PathLike[str], run: RunLog) -> Path:
     """Write ``run`` to an MCAP file at ``path`` (replaced whole: written to a temporary file
     in the same folder, then renamed).
 
-    Every message is stamped (log and publish time) with its instant ``run.time_ns[k]``; see
-    :doc:`the format <../logs>` for the channels. Chunks are zstd-compressed; the summary
-    section indexes the channels and schemas.
+    Every message is stamped (log and publish time) with its instant ``run.time_ns[k]``; the
+    channels are those of :data:`CHANNELS` that the run has (the user guide's page on
+    recorded logs lists them). Chunks are zstd-compressed; the summary section indexes the
+    channels and schemas. Floats are written as the shortest decimal that reads back as the
+    same float64 (Python's ``repr``), so :func:`read_run` returns them exactly.
 
     Args:
         path: the file to write, conventionally ``*.mcap``; its folder must exist.
