@@ -8,6 +8,8 @@ import dataclasses
 import json
 import math
 import random
+import subprocess
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -466,3 +468,12 @@ def test_a_source_that_json_cannot_hold_is_a_value_error(tmp_path: Path) -> None
         with pytest.raises(ValueError, match="/run/info: the message is not JSON-able"):
             write_run(tmp_path / "run.mcap", run)
     assert not (tmp_path / "run.mcap").exists()
+
+
+def test_importing_the_logs_loads_no_heavy_package() -> None:
+    code = "import sys, torchcontact.logs; print(' '.join(sorted(sys.modules)))"
+    loaded = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
+    ).stdout.split()
+    heavy = ("gymnasium", "pytorch_kinematics", "matplotlib", "scipy", "torchcontact.filters")
+    assert [name for name in heavy if name in loaded] == []
