@@ -585,18 +585,15 @@ class ManipulationGraph:
         )
         ids = {i: str(i) for i in graph.nodes}
         nx.draw_networkx_labels(graph, positions, labels=ids, ax=ax, font_size=8)
-        handles = [
-            Line2D([], [], ls="", marker=f"${i}$", markersize=7 + 3 * len(str(i)), color="k")
-            for i in graph.nodes
-        ]
+        node = Line2D([], [], ls="", marker="o", markersize=8, color=color)
         ax.legend(
-            handles,
+            [node] * graph.number_of_nodes(),
             [f"{i}: {labels.get(i, '')}" for i in graph.nodes],
             title="node labels",
             loc="center left",
             bbox_to_anchor=(1.0, 0.5),
-            fontsize=7,
-            title_fontsize=8,
+            fontsize=8,
+            title_fontsize=9,
             frameon=False,
         )
         ax.margins(0.15)
