@@ -31,7 +31,6 @@ import matplotlib.pyplot as plt
 import numpy as np
 import torch
 import tyro
-from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from torchcontact.envs import (
@@ -47,6 +46,7 @@ from torchcontact.experiments import (
     CHECKPOINT,
     PegLearning,
     QLookup,
+    RunLog,
     check_choice,
     check_int,
     check_name,
@@ -197,8 +197,9 @@ def run(args: Args) -> dict[str, Any]:
         start, parts, history = saved["round"], [saved["transitions"]], saved["history"]
     env = PegInHole2DVector(num_envs=args.num_envs, config=_config(args, noisy=False))
     eval_env = PegInHole2DVector(num_envs=args.eval_episodes, config=_config(args, noisy=False))
-    writer = SummaryWriter(str(run_dir))
-    episodes = start * args.num_envs
+    log = RunLog(run_dir, args)
+    writer = log.writer
+    episodes, env_steps = start * args.num_envs, 0
     for r in tqdm(
         range(start, args.rounds), desc="dyna-q rounds", initial=start, total=args.rounds
     ):
@@ -212,6 +213,8 @@ def run(args: Args) -> dict[str, Any]:
         seconds = time.perf_counter() - clock
         parts.append(result.transitions)
         episodes += args.num_envs
+        env_steps += int(result.lengths.sum())
+        log.steps_per_second(env_steps, episodes)
         row: dict[str, float] = {
             "round": r,
             "episodes": episodes,
@@ -269,7 +272,7 @@ def run(args: Args) -> dict[str, Any]:
     )
     for e in evaluations:
         writer.add_scalar(f"eval/{e.setting}_success", e.success_rate, episodes)
-    writer.close()
+    log.close()
     torch.save(agent.q_table(), run_dir / "q_table.pt")
     agent.graph.save(run_dir / "graph.json")
     torch.save(model, run_dir / "belief_model.pt")
@@ -324,7 +327,7 @@ def _plot_learning(history: list[dict[str, float]], path: Path) -> None:
 def _plot_graph(graph: ManipulationGraph, path: Path) -> None:
     """The manipulation graph merged to contact states (the pose cells are too many to draw)."""
     contact_graph = graph.merged(lambda state: ManipulationState((), state.contact))
-    fig, ax = plt.subplots(figsize=(7, 5.5))
+    fig, ax = plt.subplots(figsize=(11, 5.5))
     labels = {i: str(state.contact) for i, state in enumerate(contact_graph.states)}
     contact_graph.draw(ax, labels=labels)
     ax.set_title(f"manipulation graph by contact state ({graph.num_states} states merged)")

@@ -26,13 +26,13 @@ from pathlib import Path
 from typing import Any
 
 import tyro
-from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from torchcontact.experiments import (
     CHECKPOINT,
     FIT_METHODS,
     FITTERS,
+    RunLog,
     SlidingFit,
     check_int,
     check_name,
@@ -97,12 +97,10 @@ def run(args: Args) -> dict[str, Any]:
     check_args(args)
     run_dir, saved = open_run(args, keys=("experiments",))
     experiments: list[dict[str, Any]] = [] if saved is None else list(saved["experiments"])
-    writer = SummaryWriter(str(run_dir))
-    if saved is None:
-        writer.add_hparams(
-            {k: str(v) for k, v in dataclasses.asdict(args).items()}, {}, run_name="hparams"
-        )
-    for index in tqdm(range(len(experiments), args.rounds), desc="fit experiments"):
+    log = RunLog(run_dir, args)
+    writer = log.writer
+    first = len(experiments)
+    for index in tqdm(range(first, args.rounds), desc="fit experiments"):
         logs = sliding_logs(args, index)
         evidence = sliding_evidence(logs, args.particles)
         row: dict[str, Any] = {"mu": logs.mu, "sigma_mm": logs.sigma_mm}
@@ -116,6 +114,8 @@ def run(args: Args) -> dict[str, Any]:
             writer.add_scalar(f"charts/{method}_seconds", outcome.seconds, index)
             writer.add_scalar(f"losses/{method}_neg_log_evidence", -outcome.log_evidence, index)
         experiments.append(row)
+        # SPS: camera frames fitted (every box's steps, once per experiment) per second.
+        log.steps_per_second((index + 1 - first) * args.trials * args.steps, index)
         save_checkpoint(
             run_dir / CHECKPOINT, {"args": dataclasses.asdict(args), "experiments": experiments}
         )
@@ -123,7 +123,7 @@ def run(args: Args) -> dict[str, Any]:
     for method, values in summary.items():
         for key, value in values.items():
             writer.add_scalar(f"eval/{method}_{key}", value, len(experiments))
-    writer.close()
+    log.close()
     (run_dir / "metrics.json").write_text(
         json.dumps({"experiments": experiments, "summary": summary}, indent=2)
     )

@@ -30,7 +30,6 @@ from typing import Any
 import numpy as np
 import torch
 import tyro
-from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from torchcontact.envs import PegInHole2DVector, PegInHoleBeliefModel, PegInHoleFilter
@@ -39,6 +38,7 @@ from torchcontact.experiments import (
     NUM_BELIEF_FEATURES,
     PotentialShaping,
     QLookup,
+    RunLog,
     belief_features,
     check_int,
     check_name,
@@ -205,7 +205,9 @@ def run(args: Args) -> dict[str, Any]:
         history, best = saved["history"], saved["best"]
     else:
         best = _validate(args, eval_env, lookup, filt, online, round_index=-1)
-    writer = SummaryWriter(str(run_dir))
+    log = RunLog(run_dir, args)
+    writer = log.writer
+    first_step = counters["transitions"]
     for r in tqdm(range(start, args.rounds), desc="dqn rounds", initial=start, total=args.rounds):
         row = _train_round(
             args,
@@ -222,6 +224,7 @@ def run(args: Args) -> dict[str, Any]:
             round_index=r,
         )
         step = counters["transitions"]
+        log.steps_per_second(step - first_step, step)
         writer.add_scalar("charts/episodic_return", row["episodic_return"], step)
         writer.add_scalar("charts/episode_length", row["episode_length"], step)
         writer.add_scalar("charts/success_rate", row["success_rate"], step)
@@ -264,7 +267,7 @@ def run(args: Args) -> dict[str, Any]:
         writer.add_scalar(
             f"eval/final_{e.setting}_success", e.success_rate, counters["transitions"]
         )
-    writer.close()
+    log.close()
     torch.save(online.state_dict(), run_dir / "network.pt")
     sigma = config.pose_noise_std
     text = (

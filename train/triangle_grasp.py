@@ -40,12 +40,12 @@ import matplotlib.pyplot as plt
 import torch
 import tyro
 from torch import Tensor
-from torch.utils.tensorboard import SummaryWriter
 from tqdm import tqdm
 
 from torchcontact.experiments import (
     GRASP_METHODS,
     GraspTrials,
+    RunLog,
     TriangleGrasp,
     check_int,
     check_name,
@@ -125,7 +125,8 @@ def run(args: Args) -> dict[str, Any]:
     run_dir = new_run_dir(out_dir=args.out_dir, name=args.name, seed=args.seed)
     if args.write_logs:
         write_grasp_logs(run_dir / "logs", args, trials)
-    writer = SummaryWriter(str(run_dir))
+    log = RunLog(run_dir, args)
+    writer = log.writer
     runs = run_estimators(args, trials, model, done=lambda _: progress.update())
     outputs, timings, particles = runs.outputs, runs.timings, runs.particles
 
@@ -155,7 +156,9 @@ def run(args: Args) -> dict[str, Any]:
     (run_dir / "metrics.json").write_text(json.dumps({"metrics": metrics, **summary}, indent=2))
     write_table(run_dir / "results.md", args, metrics, summary)
     save_plots(run_dir, trials, outputs, errors, metrics)
-    writer.close()
+    # SPS: tracked steps (every trial's, through every estimator) per second of the run.
+    log.steps_per_second(trials.batch * trials.steps * len(outputs), 0)
+    log.close()
     progress.update()
     progress.close()
     return {"metrics": metrics, "run_dir": str(run_dir), **summary}

@@ -331,9 +331,10 @@ for i, state in enumerate(graph.states):
     print(f"  {i}: {state}  (visits {graph.visits(state)})")
 
 # %%
-fig, ax = plt.subplots(figsize=(7, 5))
-graph.draw(ax, labels={i: f"{i}: {m.contact}" for i, m in enumerate(graph.states)}, seed=1)
+fig, ax = plt.subplots(figsize=(11, 5))
+graph.draw(ax, labels={i: str(m.contact) for i, m in enumerate(graph.states)}, seed=1)
 ax.set_title("manipulation graph: node area ~ visits, edge width ~ P(m′ | m)")
+fig.tight_layout()
 fig.savefig(OUT / "03_graph.png", dpi=80)
 plt.show()
 

@@ -165,7 +165,7 @@ fig.savefig(OUT / "05_learning.png", dpi=80)
 # %%
 agent = agents[10]
 contact_graph = agent.graph.merged(lambda state: ManipulationState((), state.contact))
-fig, ax = plt.subplots(figsize=(7, 5.5))
+fig, ax = plt.subplots(figsize=(11, 5.5))
 contact_graph.draw(ax, labels={i: str(s.contact) for i, s in enumerate(contact_graph.states)})
 ax.set_title(f"{agent.num_states} manipulation states merged to contact states")
 fig.tight_layout()

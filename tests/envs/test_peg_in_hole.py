@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 from gymnasium.utils.env_checker import check_env
+from gymnasium.wrappers import TimeLimit
 
 from torchcontact.envs import (
     ENV_BELOW,
@@ -24,6 +25,7 @@ from torchcontact.envs import (
     PegInHole2D,
     PegInHole2DVector,
     PegInHoleConfig,
+    observation_bounds,
 )
 from torchcontact.sim import UNSOLVED, Simulator, StepResult
 from torchcontact.states import ManipulationState
@@ -51,14 +53,15 @@ def flatten(observation: Any) -> np.ndarray:
 
 
 @pytest.mark.parametrize("observation", ["state", "noisy"])
-def test_passes_gymnasiums_env_checker(observation: str) -> None:
-    env = PegInHole2D(observation=observation, render_mode="rgb_array")  # type: ignore[arg-type]
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        check_env(env)
-    expected = ("infinity", "spec")  # unbounded poses; no registry spec for an unwrapped env
-    unexpected = [str(w.message) for w in caught if not any(e in str(w.message) for e in expected)]
-    assert not unexpected
+@pytest.mark.parametrize("render_mode", [None, "rgb_array"])
+def test_passes_gymnasiums_env_checker_without_warnings(
+    observation: str, render_mode: str | None
+) -> None:
+    """Every warning is an error: finite Box bounds, stackable info, a spec (from ``make``)."""
+    env = gym.make(PEG_IN_HOLE_ID, observation=observation, render_mode=render_mode)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(env.unwrapped)
 
 
 def test_registered_with_gymnasium() -> None:
@@ -230,7 +233,7 @@ def test_vector_env_equals_a_loop_of_single_envs() -> None:
         batch.append((observation, infos["peg_pose"], reward, terminated, truncated))
     ends: dict[str, list[int]] = {"terminated": [], "truncated": []}
     for i in range(B):
-        env = PegInHole2D(config=config, observation="noisy")
+        env = TimeLimit(PegInHole2D(config=config, observation="noisy"), config.max_steps)
         options = {key: float(np.broadcast_to(value, B)[i]) for key, value in starts.items()}
         observation, info = env.reset(seed=seed + i, options=options)
         done = False
@@ -255,22 +258,18 @@ def test_vector_env_equals_a_loop_of_single_envs() -> None:
     assert len(ends["truncated"]) >= B - 1
 
 
-def test_truncated_at_the_time_limit() -> None:
-    env = PegInHole2D(config=PegInHoleConfig(max_steps=5))
-    env.reset(seed=0)
-    for step in range(1, 6):
-        _, reward, terminated, truncated, _ = env.step(STAY)
-        assert not terminated
-        assert truncated == (step == 5)
-        assert reward == pytest.approx(-env.config.step_cost)
-
-
-def test_random_actions_stay_finite() -> None:
+def test_random_actions_stay_finite_and_inside_the_observation_bounds() -> None:
+    """The true poses and twists of held pegs (info, not clipped) lie inside the bounds."""
     vector = PegInHole2DVector(num_envs=12, observation="noisy")
+    bounds = observation_bounds(vector.config)
     vector.reset(seed=0)
     rng = np.random.default_rng(2)
     for _ in range(40):
         observation, reward, _, _, infos = vector.step(rng.integers(0, 7, size=12))
+        assert vector.observation_space.contains(observation)
+        held = ~infos["dropped"]
+        for key, (low, high) in bounds.items():
+            assert ((infos[key][held] > low) & (infos[key][held] < high)).all(), key
         assert np.isfinite(observation["peg_pose"]).all()
         assert np.isfinite(reward).all()
         assert np.isfinite(infos["peg_twist"]).all()
@@ -283,9 +282,19 @@ def test_random_actions_stay_finite() -> None:
 def test_info_reports_the_true_contacts_and_manipulation_state() -> None:
     env = PegInHole2D(render_mode="rgb_array")
     _, info = env.reset(seed=4)
-    assert set(info["contact_partners"]) == {"finger_left", "finger_right"}
-    assert (info["contact_impulses"] > 0).all()
-    normals_x = info["contact_normals"][:, 0]  # the pads push the peg from both sides
+    active = info["contact_active"]
+    K = env.peg_contacts().points.shape[-2]  # the peg's slots in the scene
+    assert active.shape == info["contact_impulses"].shape == info["contact_partners"].shape == (K,)
+    assert info["contact_points"].shape == info["contact_normals"].shape == (K, 2)
+    assert set(info["contact_partners"][active]) == {"finger_left", "finger_right"}
+    assert set(info["contact_partners"][~active]) == {""}
+    assert (info["contact_impulses"][active] > 0).all()
+    inactive = np.concatenate(
+        [info[key][~active].ravel() for key in ("contact_points", "contact_normals")]
+        + [info["contact_impulses"][~active]]
+    )
+    assert (inactive == 0.0).all()  # exact: padding is written as zeros
+    normals_x = info["contact_normals"][active, 0]  # the pads push the peg from both sides
     assert (normals_x > 0.9).any()
     assert (normals_x < -0.9).any()
     assert info["contact_state"].robot
@@ -362,3 +371,4 @@ def test_a_failed_solve_ends_the_episode_as_dropped_with_clean_contacts(
     assert not info["success"]
     assert reward == pytest.approx(-env.config.step_cost - env.config.drop_penalty)
     assert (info["contact_impulses"] >= 0).all()
+    assert (info["contact_impulses"][~info["contact_active"]] == 0.0).all()  # exact padding

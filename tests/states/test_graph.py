@@ -325,3 +325,25 @@ def test_box_resting_sliding_and_tipping() -> None:
     assert graph.count(slide, 1, slide) == 2
     assert graph.mean_reward(slide, 1, slide) == (0.03 + 0.04) / 2
     assert graph.to_networkx().number_of_edges() == 6  # the six observed (m, m′) pairs
+
+
+def test_draw_shows_ids_on_the_nodes_and_a_legend_of_their_labels() -> None:
+    import matplotlib.pyplot as plt
+
+    graph = _graph()
+    ax = graph.draw()
+    legend = ax.get_legend()
+    assert legend is not None
+    texts = [text.get_text() for text in legend.get_texts()]
+    assert texts == [f"{i}: {state}" for i, state in enumerate(graph.states)]
+    on_nodes = sorted(text.get_text() for text in ax.texts)
+    assert on_nodes == sorted(str(i) for i in range(graph.num_states))
+    plt.close(ax.figure)
+    _, ax = plt.subplots()
+    graph.draw(ax, labels={0: "start", 1: "middle", 2: "goal"})
+    assert [t.get_text() for t in ax.get_legend().get_texts()] == [
+        "0: start",
+        "1: middle",
+        "2: goal",
+    ]
+    plt.close(ax.figure)

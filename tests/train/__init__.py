@@ -3,9 +3,15 @@
 from __future__ import annotations
 
 import importlib.util
+import json
+import math
 import sys
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from types import ModuleType
+from typing import Any
+
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 TRAIN = Path(__file__).resolve().parents[2] / "train"
 
@@ -19,3 +25,27 @@ def load_script(name: str) -> ModuleType:
     sys.modules[name] = module
     spec.loader.exec_module(module)
     return module
+
+
+def assert_logged(run_dir: Path, fields: Iterable[str], expected: Mapping[str, Any]) -> None:
+    """The run folder logs its arguments and throughput (read back with TensorBoard's reader).
+
+    ``args.json`` holds exactly ``fields`` with the ``expected`` values (JSON: tuples as
+    lists); the TensorBoard text ``hyperparameters`` has a Markdown row per argument; and
+    ``charts/SPS`` is logged, positive and finite.
+    """
+    saved = json.loads((run_dir / "args.json").read_text())
+    assert list(saved) == list(fields)
+    for name, value in expected.items():
+        assert saved[name] == json.loads(json.dumps(value)), name
+    events = EventAccumulator(str(run_dir))
+    events.Reload()
+    (text,) = events.Tensors("hyperparameters/text_summary")
+    table = text.tensor_proto.string_val[0].decode()
+    assert table.startswith("| argument | value |\n|---|---|\n")
+    for name, value in saved.items():
+        shown = tuple(value) if isinstance(value, list) else value
+        assert f"| {name} | {shown} |" in table, name
+    rates = [event.value for event in events.Scalars("charts/SPS")]
+    assert rates
+    assert all(0 < rate < math.inf for rate in rates)

@@ -3,16 +3,21 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import pickle
 import re
+import time
 from pathlib import Path
 from typing import Any
 
 import pytest
 import torch
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from torchcontact.experiments import (
+    ARGUMENTS,
     CHECKPOINT,
+    RunLog,
     check_choice,
     check_int,
     check_name,
@@ -166,3 +171,27 @@ def test_argument_checks_name_the_argument_and_the_range() -> None:
     for bad in ("", "a/b"):
         with pytest.raises(ValueError, match="name: expected a non-empty name"):
             check_name("name", bad)
+
+
+def test_run_log_writes_the_arguments_and_the_steps_per_second(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """args.json and the text table hold the arguments; SPS is steps over the clock's time."""
+    readings = [100.0, 102.5]  # when the log opens, then ever after
+    monkeypatch.setattr(time, "perf_counter", lambda: readings.pop(0) if readings[1:] else 102.5)
+    args = _Args(out_dir="a|b")  # a pipe, escaped in the table
+    log = RunLog(tmp_path, args)
+    assert log.steps_per_second(50, 7) == pytest.approx(20.0, rel=1e-15)  # 50 steps in 2.5 s
+    log.close()
+    saved = json.loads((tmp_path / ARGUMENTS).read_text())
+    assert saved == dataclasses.asdict(args)
+    events = EventAccumulator(str(tmp_path))
+    events.Reload()
+    (sps,) = events.Scalars("charts/SPS")
+    assert (sps.step, sps.value) == (7, pytest.approx(20.0, rel=1e-6))  # stored as float32
+    (text,) = events.Tensors("hyperparameters/text_summary")
+    table = text.tensor_proto.string_val[0].decode()
+    assert "| out_dir | a\\|b |" in table
+    assert "| particles | 64 |" in table
+    with pytest.raises(ValueError, match="args"):
+        RunLog(tmp_path, _Args)

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch
 
-from tests.train import load_script
+from tests.train import assert_logged, load_script
 from torchcontact.envs import PegInHole2DVector
 from torchcontact.experiments import PegLearning, PotentialShaping, round_seed
 
@@ -38,8 +38,10 @@ def module() -> ModuleType:
 
 
 def test_runs_and_writes_its_artefacts(module: ModuleType, tmp_path: Path) -> None:
-    result = module.run(_tiny(module, tmp_path))
+    args = _tiny(module, tmp_path)
+    result = module.run(args)
     run_dir = Path(result["run_dir"])
+    assert_logged(run_dir, [f.name for f in dataclasses.fields(args)], dataclasses.asdict(args))
     artefacts = ("results.md", "q_table.pt", "graph.json", "graph.png", "learning.png")
     for name in (*artefacts, "checkpoint.pt"):
         assert (run_dir / name).is_file(), name

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
@@ -10,7 +11,7 @@ from types import ModuleType
 
 import pytest
 
-from tests.train import load_script
+from tests.train import assert_logged, load_script
 
 
 @pytest.fixture(scope="module")
@@ -21,6 +22,9 @@ def module() -> ModuleType:
 def test_tiny_run_writes_its_outputs_and_resumes(module: ModuleType, tmp_path: Path) -> None:
     result = module.run(module.Args(name="tiny", out_dir=str(tmp_path), fast=True, seed=3))
     run_dir = Path(result["run_dir"])
+    # The arguments as run: fast mode shrinks the budget.
+    ran = {"name": "tiny", "out_dir": str(tmp_path), "seed": 3, "fast": True, "rounds": 1}
+    assert_logged(run_dir, [f.name for f in dataclasses.fields(module.Args)], ran)
     assert re.fullmatch(r"tiny__3__\d+", run_dir.name)
     for name in ("results.md", "metrics.json", "checkpoint.pt"):
         assert (run_dir / name).is_file(), name

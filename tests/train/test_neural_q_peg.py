@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 import torch
 
-from tests.train import load_script
+from tests.train import assert_logged, load_script
 from torchcontact.rl import DynaQ
 
 
@@ -70,10 +70,12 @@ def straight(
 
 
 def test_trains_from_the_tabular_run_and_writes_its_artefacts(
-    straight: dict[str, Any],
+    module: ModuleType, straight: dict[str, Any], tabular_run: Path
 ) -> None:
     result = straight
     run_dir = Path(result["run_dir"])
+    args = _tiny(module, run_dir.parent, tabular_run)
+    assert_logged(run_dir, [f.name for f in dataclasses.fields(args)], dataclasses.asdict(args))
     for name in ("results.md", "network.pt", "checkpoint.pt"):
         assert (run_dir / name).is_file(), name
     assert list(run_dir.glob("events.out.tfevents.*"))

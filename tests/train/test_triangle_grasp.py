@@ -3,6 +3,7 @@ checks (the pipeline's pieces are tested in tests/experiments, tests/filters and
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
@@ -14,7 +15,7 @@ from types import ModuleType
 import pytest
 import torch
 
-from tests.train import load_script
+from tests.train import assert_logged, load_script
 from torchcontact.logs import read_run
 
 
@@ -35,8 +36,10 @@ def result(module: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> Iter
         torch.set_num_threads(threads)
 
 
-def test_outputs_exist(result: dict) -> None:
+def test_outputs_exist(module: ModuleType, result: dict) -> None:
     run_dir = Path(result["run_dir"])
+    ran = {"name": "tiny", "out_dir": str(run_dir.parent), "seed": 0, "fast": True, "trials": 2}
+    assert_logged(run_dir, [f.name for f in dataclasses.fields(module.Args)], ran)
     assert re.fullmatch(r"tiny__0__\d+", run_dir.name)
     for name in ("results.md", "metrics.json", "snapshots.png", "errors.png", "modes.png"):
         assert (run_dir / name).is_file(), name

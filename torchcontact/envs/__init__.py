@@ -9,8 +9,12 @@ the grasp with the RBPF over contact classes (init, step and restart on the envi
 observations), on a :class:`PegInHoleBeliefModel`: the switching model fitted from recorded
 steps (:class:`PegTransitions`) and the manipulation graph.
 
-Importing this package registers ``"torchcontact/PegInHole2D-v0"`` with gymnasium (also for
-``gymnasium.make_vec(..., vectorization_mode="vector_entry_point")``).
+Importing this package registers ``"torchcontact/PegInHole2D-v0"`` with gymnasium, its spec's
+``max_episode_steps`` being ``PegInHoleConfig().max_steps`` (``gymnasium.make`` wraps the
+environment in ``TimeLimit``; ``max_episode_steps=`` sets another limit), for
+``gymnasium.make_vec`` in the ``"sync"``, ``"async"`` and ``"vector_entry_point"`` modes
+(the last one steps :class:`PegInHole2DVector`). :func:`observation_bounds` gives the
+observation spaces' bounds.
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ from torchcontact.envs._belief_filter import PegBelief, PegInHoleFilter
 from torchcontact.envs._belief_model import PegControl, PegInHoleBeliefModel
 from torchcontact.envs._config import PegInHoleConfig
 from torchcontact.envs._env import PegInHole2D
-from torchcontact.envs._observe import START_KEYS
+from torchcontact.envs._observe import START_KEYS, observation_bounds
 from torchcontact.envs._states import (
     CONTACT_TABLE,
     ENV_BELOW,
@@ -54,6 +58,7 @@ if PEG_IN_HOLE_ID not in gymnasium.registry:
         id=PEG_IN_HOLE_ID,
         entry_point="torchcontact.envs:PegInHole2D",
         vector_entry_point="torchcontact.envs:PegInHole2DVector",
+        max_episode_steps=PegInHoleConfig().max_steps,
     )
 
 __all__ = [
@@ -84,4 +89,5 @@ __all__ = [
     "build_scene",
     "contact_classes",
     "manipulation_state",
+    "observation_bounds",
 ]

@@ -106,7 +106,11 @@ class PegInHoleConfig:
         start_angle: range of the initial gripper angle.
         grasp_offset: range of the distance from the finger pads down to the peg's centre.
         grasp_angle: range of the peg's initial angle relative to the fingers.
-        max_steps: environment steps before truncation.
+        max_steps: environment steps before truncation: the limit of
+            :class:`~torchcontact.envs.PegInHole2DVector` unless it is given
+            ``max_episode_steps``, and the default's is the registered spec's
+            ``max_episode_steps`` (:class:`~torchcontact.envs.PegInHole2D` itself never
+            truncates: gymnasium's ``TimeLimit`` does).
         success_reward: reward on reaching the insertion depth.
         step_cost: cost of every step (subtracted).
         drop_penalty: cost of losing the peg from the grasp (subtracted; ends the episode).

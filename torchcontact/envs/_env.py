@@ -21,7 +21,7 @@ from torchcontact.envs._observe import (
     start_samples,
     summaries,
 )
-from torchcontact.envs._render import render_frame
+from torchcontact.envs._render import render_environment
 from torchcontact.envs._states import PegInHoleStates
 from torchcontact.envs._task import ACTION_NAMES, PegInHoleTask, Physics
 from torchcontact.states import ContactSet, ManipulationState, contact_states
@@ -65,23 +65,34 @@ class PegInHole2D(gym.Env[Observation, Any]):
     ``gripper_x, peg_height, gripper_angle, grasp_offset, grasp_angle``), then lets the grasp
     settle for ``settle_steps`` simulator steps. Each step costs ``step_cost``; reaching the
     insertion depth ends the episode (``terminated``) with ``success_reward``; losing the peg
-    from the grasp ends it with ``−drop_penalty``; after ``max_steps`` steps the episode is
-    ``truncated``.
+    from the grasp ends it with ``−drop_penalty``. The time limit follows gymnasium's
+    convention: the environment itself never truncates; ``gymnasium.make`` wraps it in
+    ``TimeLimit`` with the spec's ``max_episode_steps`` (registered as
+    ``PegInHoleConfig().max_steps``, 200; ``gymnasium.make(..., max_episode_steps=n)`` sets
+    another), and a directly constructed environment needs
+    ``gymnasium.wrappers.TimeLimit(env, n)`` for one.
 
     **Observations** (``observation=``): ``"state"`` is the true state (peg pose and twist,
     gripper pose, ``(9,)``) for oracle runs; ``"noisy"`` is a dict of the peg pose seen by
     vision with Gaussian noise (``pose_noise_std``), the gripper pose and binary tactile
     readings of sensors on the peg's sides with false-positive and false-negative rates.
 
-    **Info**: ``peg_pose``, ``peg_twist``, ``gripper_pose``, ``peg_in_gripper`` (the peg's pose
-    in the gripper frame), ``contact_class`` and ``manipulation_state_id`` (ints),
+    **Observation bounds** follow from the task's geometry (workspace, starts, the grasp's
+    reach; :func:`~torchcontact.envs.observation_bounds`); observations are clipped to them,
+    which only the last step of an episode that drops the peg can reach.
+
+    **Info** (fixed shapes, so that gymnasium's sync and async vectorizers stack it):
+    ``peg_pose``, ``peg_twist``, ``gripper_pose``, ``peg_in_gripper`` (the peg's pose in the
+    gripper frame), ``contact_class`` and ``manipulation_state_id`` (ints),
     ``manipulation_state`` (a hashable :class:`~torchcontact.states.ManipulationState`),
     ``contact_state`` (the peg's full :class:`~torchcontact.states.ContactState` on a
     :class:`~torchcontact.states.FeatureGrid` of ``contact_radius``, ``contact_angle``), the
-    active contacts ``contact_points`` / ``contact_normals`` (world frame, normals into the
-    peg) / ``contact_impulses`` / ``contact_partners`` (body names), the noise-free
-    ``tactile_triggered``, and ``success`` / ``dropped``. :meth:`peg_contacts` returns the
-    contacts as a :class:`~torchcontact.states.ContactSet`.
+    contacts in the peg's ``K`` slots of the scene: ``contact_active`` ``(K,)`` (the slots
+    that carry an impulse) and, zero (``""``) in the other slots, ``contact_points`` /
+    ``contact_normals`` ``(K, 2)`` (world frame, normals into the peg) /
+    ``contact_impulses`` ``(K,)`` / ``contact_partners`` ``(K,)`` (body names), the
+    noise-free ``tactile_triggered``, and ``success`` / ``dropped``. :meth:`peg_contacts`
+    returns the contacts as a :class:`~torchcontact.states.ContactSet`.
 
     **Manipulation states** (:attr:`states`): the peg's pose relative to the hole on a grid
     that is fine near the mouth and coarse far away, times a contact class of the peg with the
@@ -121,7 +132,6 @@ class PegInHole2D(gym.Env[Observation, Any]):
         self.action_space = spaces.Discrete(len(ACTION_NAMES))
         self.observation_space = observation_space(self.task, observation)
         self._physics: Physics | None = None
-        self._steps = 0
 
     @property
     def states(self) -> PegInHoleStates:
@@ -161,7 +171,6 @@ class PegInHole2D(gym.Env[Observation, Any]):
         super().reset(seed=seed)
         samples = start_samples(self.task, [self.np_random], options)
         self._physics = self.task.reset(samples)
-        self._steps = 0
         return self._report()
 
     def step(self, action: Any) -> tuple[Observation, SupportsFloat, bool, bool, dict[str, Any]]:
@@ -171,7 +180,8 @@ class PegInHole2D(gym.Env[Observation, Any]):
             action: an int in ``[0, 7)`` (:data:`ACTION_NAMES`).
 
         Returns:
-            ``(observation, reward, terminated, truncated, info)``.
+            ``(observation, reward, terminated, truncated, info)``; ``truncated`` is always
+            ``False`` here: the time limit is gymnasium's ``TimeLimit`` wrapper's.
 
         Raises:
             ValueError: ``action`` is not a valid action.
@@ -182,28 +192,17 @@ class PegInHole2D(gym.Env[Observation, Any]):
         physics = self.physics
         actions = torch.tensor([int(action)], dtype=torch.long)
         self._physics = self.task.step(physics, actions)
-        self._steps += 1
         observation, info = self._report()
         success, dropped = bool(info["success"]), bool(info["dropped"])
         reward = float(rewards(self.task, np.array([success]), np.array([dropped]))[0])
         terminated = success or dropped
-        truncated = not terminated and self._steps >= self.config.max_steps
-        return observation, reward, terminated, truncated, info
+        return observation, reward, terminated, False, info
 
     def render(self) -> NDArray[np.uint8] | None:
         """An RGB image of the scene (``render_mode="rgb_array"``), else ``None``."""
         if self.render_mode != "rgb_array":
             return None
-        physics = self.physics
-        c = self.config
-        span = c.hole_width / 2 + c.block_width
-        top = max(c.workspace_y[1], float(physics.gripper[0, 1]) + c.finger_height)
-        return render_frame(
-            self.task.scene,
-            q=physics.state.q[0],
-            gripper=physics.gripper[0],
-            extent=(-span, span, -0.02, top),
-        )
+        return render_environment(self.task, self.physics, 0)
 
     def peg_contacts(self) -> ContactSet:
         """The peg's contacts of the last simulator step (batch shape ``()``, world frame)."""
@@ -248,12 +247,6 @@ class PegInHole2D(gym.Env[Observation, Any]):
             info[key] = bool(info[key])
         info["manipulation_state"] = self.states.key(info["manipulation_state_id"])
         info["contact_state"] = contact_states(contacts, self.task.contact_grid)[0]
-        active = contacts.active[0]
-        partners = contacts.partner[active].tolist()
-        info["contact_points"] = contacts.points[0][active].numpy().copy()
-        info["contact_normals"] = contacts.normals[0][active].numpy().copy()
-        info["contact_impulses"] = contacts.pn[0][active].numpy().copy()
-        info["contact_partners"] = tuple(self.task.scene.bodies[i].name for i in partners)
         return _first(observation), info
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from typing import Any, Literal
 
@@ -10,6 +11,7 @@ import torch
 from gymnasium import spaces
 from numpy.typing import NDArray
 
+from torchcontact.envs._config import PegInHoleConfig
 from torchcontact.envs._states import contact_classes
 from torchcontact.envs._task import NUM_START_SAMPLES, PEG, PegInHoleTask, Physics
 from torchcontact.states import ContactSet
@@ -21,23 +23,100 @@ START_KEYS = ("gripper_x", "peg_height", "gripper_angle", "grasp_offset", "grasp
 
 
 def observation_space(task: PegInHoleTask, mode: ObservationMode) -> spaces.Space[Any]:
-    """The observation space of one environment.
+    """The observation space of one environment, bounded by :func:`observation_bounds`.
 
     ``"state"``: a ``(9,)`` float64 box, peg pose ``(x, y, θ)``, peg twist ``(vx, vy, ω)`` and
     gripper pose, world frame. ``"noisy"``: a dict of the peg pose seen by vision with Gaussian
     noise (``"peg_pose"``, ``(3,)``), the gripper pose (``"gripper_pose"``, exact:
     proprioception) and the tactile readings (``"tactile"``, ``(S,)`` int8 0/1).
     """
+    bounds = observation_bounds(task.config)
     if mode == "state":
-        return spaces.Box(-np.inf, np.inf, shape=(9,), dtype=np.float64)
-    pose = spaces.Box(-np.inf, np.inf, shape=(3,), dtype=np.float64)
+        low, high = (np.concatenate([b[i] for b in bounds.values()]) for i in (0, 1))
+        return spaces.Box(low, high, dtype=np.float64)
     return spaces.Dict(
         {
-            "peg_pose": pose,
-            "gripper_pose": spaces.Box(-np.inf, np.inf, shape=(3,), dtype=np.float64),
+            "peg_pose": spaces.Box(*bounds["peg_pose"], dtype=np.float64),
+            "gripper_pose": spaces.Box(*bounds["gripper_pose"], dtype=np.float64),
             "tactile": spaces.MultiBinary(task.sensors.num_sensors),
         }
     )
+
+
+def observation_bounds(
+    config: PegInHoleConfig,
+) -> dict[str, tuple[NDArray[np.float64], NDArray[np.float64]]]:
+    """``(low, high)`` bounds, ``(3,)`` each, of the observed peg pose, peg twist and gripper pose.
+
+    They follow from the task's geometry (world frame, SI units):
+
+    * gripper ``G``: the hull of the workspace and of the starts. Reset places the gripper at
+      ``x ∈ start_x``, angle ``∈ start_angle`` and
+      ``y = hole_depth + height + (offset + peg_height/2) cos(peg angle)``
+      (:meth:`PegInHoleTask.initial_state`; ``height ∈ start_height``,
+      ``offset ∈ grasp_offset``, peg angle ``∈ start_angle + grasp_angle``); every step
+      clamps its target into the workspace.
+    * peg position: ``G`` widened by twice the reach ``r = hypot(peg_height/2, peg_width/2 +
+      finger_width)`` of the grasp. A held peg's centre lies within ``r`` of the gripper
+      (:meth:`PegInHoleTask.outcome` calls it dropped beyond), and the step that drops it
+      ends the episode; the second ``r`` is that step's travel.
+    * peg angle: ``G``'s angles widened by ``π/2``: the peg turns at most ``π/4`` in a grasp
+      that holds it, plus the step that drops it.
+    * peg twist: ``±(2 r / τ + v_G)`` linear and ``±(π/2 / τ + ω_G)`` angular, with
+      ``τ = substeps · h`` the step's duration and ``v_G = √2 move_step / τ``,
+      ``ω_G = turn_step / τ`` the gripper's speeds: a peg moving faster relative to the
+      gripper would cross the whole grasp within one step.
+
+    Observations are clipped to these bounds (:func:`observe`), which a peg in the grasp stays
+    well inside (e.g. ``|v| ≈ 0.15 m/s``, ``|ω| ≈ 1.8 rad/s`` over random-action episodes with
+    the default config, against bounds of 9.1 m/s and 80 rad/s); only the last step of an
+    episode that drops the peg can reach them. Non-finite values (a failed simulator step,
+    which also ends the episode) are left as they are.
+
+    Args:
+        config: the task configuration.
+
+    Returns:
+        ``{"peg_pose": ..., "peg_twist": ..., "gripper_pose": ...}``, in the order of the
+        ``"state"`` observation.
+    """
+    c = config
+    half_h = c.peg_height / 2
+    # The start's peg angle lies in start_angle + grasp_angle; its cosine is least at the end
+    # farthest from 0 (or -1 past π).
+    farthest = max(abs(a + b) for a, b in zip(c.start_angle, c.grasp_angle, strict=True))
+    least_cos = math.cos(min(farthest, math.pi))
+    lowest_start = (
+        c.hole_depth
+        + c.start_height[0]
+        + least_cos * (c.grasp_offset[0 if least_cos >= 0 else 1] + half_h)
+    )
+    highest_start = c.hole_depth + c.start_height[1] + c.grasp_offset[1] + half_h
+    gripper_low = np.array(
+        [
+            min(c.workspace_x[0], c.start_x[0]),
+            min(c.workspace_y[0], lowest_start),
+            min(c.workspace_angle[0], c.start_angle[0]),
+        ]
+    )
+    gripper_high = np.array(
+        [
+            max(c.workspace_x[1], c.start_x[1]),
+            max(c.workspace_y[1], highest_start),
+            max(c.workspace_angle[1], c.start_angle[1]),
+        ]
+    )
+    reach = math.hypot(half_h, c.peg_width / 2 + c.finger_width)
+    widen = np.array([2 * reach, 2 * reach, math.pi / 2])
+    tau = c.substeps * c.h
+    speed = 2 * reach / tau + math.sqrt(2) * c.move_step / tau
+    spin = (math.pi / 2) / tau + c.turn_step / tau
+    twist = np.array([speed, speed, spin])
+    return {
+        "peg_pose": (gripper_low - widen, gripper_high + widen),
+        "peg_twist": (-twist, twist),
+        "gripper_pose": (gripper_low, gripper_high),
+    }
 
 
 def start_samples(
@@ -80,8 +159,9 @@ def observe(
 ) -> NDArray[np.float64] | dict[str, NDArray[Any]]:
     """Batched observations of ``B`` environments (noise drawn from each one's generator).
 
-    Each environment draws, in order, 3 normals (pose noise) and ``S`` uniforms (tactile
-    noise) in ``"noisy"`` mode, nothing in ``"state"`` mode.
+    Poses and twists are clipped to :func:`observation_bounds`. Each environment draws, in
+    order, 3 normals (pose noise) and ``S`` uniforms (tactile noise) in ``"noisy"`` mode,
+    nothing in ``"state"`` mode.
 
     Args:
         task: the task.
@@ -90,9 +170,11 @@ def observe(
         mode: the observation mode.
         triggered: ``(B, S)`` noise-free tactile readings (``summaries(...)["tactile_triggered"]``).
     """
-    if mode == "state":
-        return task.state_vector(physics)
     c = task.config
+    bounds = observation_bounds(c)
+    if mode == "state":
+        low, high = (np.concatenate([b[i] for b in bounds.values()]) for i in (0, 1))
+        return np.clip(task.state_vector(physics), low, high)
     S = task.sensors.num_sensors
     normals = np.stack([rng.normal(size=3) for rng in rngs])
     uniforms = np.stack([rng.random(S) for rng in rngs])
@@ -101,8 +183,8 @@ def observe(
     probability = task.sensors.reading_probability(torch.from_numpy(triggered)).numpy()
     readings = (uniforms < probability).astype(np.int8)
     return {
-        "peg_pose": noisy.astype(np.float64),
-        "gripper_pose": physics.gripper.numpy().astype(np.float64),
+        "peg_pose": np.clip(noisy.astype(np.float64), *bounds["peg_pose"]),
+        "gripper_pose": np.clip(physics.gripper.numpy(), *bounds["gripper_pose"]),
         "tactile": readings,
     }
 
@@ -110,7 +192,14 @@ def observe(
 def summaries(
     task: PegInHoleTask, physics: Physics, contacts: ContactSet
 ) -> dict[str, NDArray[Any]]:
-    """Batched ground truth: poses, twist, contact class, manipulation state, flags.
+    """Batched ground truth: poses, twist, contact class, manipulation state, contacts, flags.
+
+    Every entry has a fixed shape ``(B, ...)``, so single environments' infos stack (gymnasium's
+    vectorizers). The peg's contacts fill its ``K`` slots of the scene
+    (``contacts.points.shape[-2]``): ``contact_active`` ``(B, K)`` marks the slots that carry
+    an impulse, and ``contact_points`` ``(B, K, 2)``, ``contact_normals`` ``(B, K, 2)`` (world
+    frame, into the peg), ``contact_impulses`` ``(B, K)`` and ``contact_partners`` ``(B, K)``
+    (body names) are zero (``""``) in the other slots.
 
     Args:
         task: the task.
@@ -121,7 +210,16 @@ def summaries(
     peg = physics.state.q[:, PEG]
     ids = task.states.ids(peg, classes)
     success, dropped = task.outcome(physics)
+    active = contacts.active
+    # Body names as Python strings in an object array: gymnasium compares a numpy str array
+    # as numbers (``np.allclose``) in its checker.
+    names = np.array([task.scene.bodies[i].name for i in contacts.partner.tolist()], dtype=object)
     return {
+        "contact_active": active.numpy().copy(),
+        "contact_points": torch.where(active[..., None], contacts.points, 0.0).numpy(),
+        "contact_normals": torch.where(active[..., None], contacts.normals, 0.0).numpy(),
+        "contact_impulses": torch.where(active, contacts.pn, 0.0).numpy(),
+        "contact_partners": np.where(active.numpy(), names, "").astype(object),
         "peg_pose": peg.numpy().copy(),
         "peg_twist": physics.state.v[:, PEG].numpy().copy(),
         "gripper_pose": physics.gripper.numpy().copy(),

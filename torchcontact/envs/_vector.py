@@ -14,6 +14,7 @@ from gymnasium.vector.utils import batch_space
 from numpy.typing import NDArray
 from torch import Tensor
 
+from torchcontact._checks import check_int
 from torchcontact.envs._config import PegInHoleConfig
 from torchcontact.envs._observe import (
     OBSERVATION_MODES,
@@ -24,6 +25,7 @@ from torchcontact.envs._observe import (
     start_samples,
     summaries,
 )
+from torchcontact.envs._render import render_environment
 from torchcontact.envs._states import PegInHoleStates
 from torchcontact.envs._task import ACTION_NAMES, PegInHoleTask, Physics
 from torchcontact.states import ContactSet
@@ -45,21 +47,34 @@ class PegInHole2DVector(VectorEnv[Observation, NDArray[np.int64], NDArray[Any]])
     call to :meth:`step` ignores that sub-environment's action, resets it and returns its
     first observation with reward 0 and both flags ``False``.
 
+    Episodes are truncated after ``max_episode_steps`` steps (``config.max_steps`` unless
+    given; ``gymnasium.make_vec`` passes the spec's, which ``max_episode_steps=`` overrides).
+
     ``infos`` holds, as arrays with a leading ``num_envs`` axis (each with its ``_key`` mask):
     ``peg_pose``, ``peg_twist``, ``gripper_pose``, ``peg_in_gripper``, ``contact_class``,
-    ``manipulation_state_id``, ``tactile_triggered``, ``success`` and ``dropped``.
+    ``manipulation_state_id``, ``tactile_triggered``, the contacts in the peg's ``K`` slots
+    (``contact_active``, ``contact_points``, ``contact_normals``, ``contact_impulses``,
+    ``contact_partners``; see :class:`PegInHole2D`), ``success`` and ``dropped``.
 
     Args:
         num_envs: number of environments ``B >= 1``.
         config: the task configuration (default :class:`PegInHoleConfig()`).
         observation: ``"state"`` or ``"noisy"``.
+        max_episode_steps: steps before truncation, an int ``>= 1``; ``None`` takes
+            ``config.max_steps``.
+        render_mode: ``None`` or ``"rgb_array"`` (:meth:`render` returns one frame per
+            sub-environment).
 
     Raises:
         ValueError: an argument is invalid (the message names it).
     """
 
     # gymnasium declares ``metadata`` as a plain class attribute, not a ClassVar.
-    metadata: dict[str, Any] = {"autoreset_mode": AutoresetMode.NEXT_STEP}  # noqa: RUF012
+    metadata: dict[str, Any] = {  # noqa: RUF012
+        "autoreset_mode": AutoresetMode.NEXT_STEP,
+        "render_modes": ["rgb_array"],
+        "render_fps": 50,
+    }
 
     def __init__(
         self,
@@ -67,6 +82,8 @@ class PegInHole2DVector(VectorEnv[Observation, NDArray[np.int64], NDArray[Any]])
         num_envs: int,
         config: PegInHoleConfig | None = None,
         observation: ObservationMode = "state",
+        max_episode_steps: int | None = None,
+        render_mode: str | None = None,
     ) -> None:
         if isinstance(num_envs, bool) or not isinstance(num_envs, int) or num_envs < 1:
             raise ValueError(f"num_envs must be an int >= 1, got {num_envs!r}")
@@ -75,7 +92,13 @@ class PegInHole2DVector(VectorEnv[Observation, NDArray[np.int64], NDArray[Any]])
             raise ValueError(f"config must be a PegInHoleConfig, got {type(config).__name__}")
         if observation not in OBSERVATION_MODES:
             raise ValueError(f"observation must be 'state' or 'noisy', got {observation!r}")
+        if max_episode_steps is None:
+            max_episode_steps = config.max_steps
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
         self.num_envs = num_envs
+        self.max_episode_steps = check_int("max_episode_steps", max_episode_steps, low=1)
+        self.render_mode = render_mode
         self.config = config
         self.observation_mode: ObservationMode = observation
         self.task = PegInHoleTask(config)
@@ -183,9 +206,20 @@ class PegInHole2DVector(VectorEnv[Observation, NDArray[np.int64], NDArray[Any]])
         success, dropped = infos["success"], infos["dropped"]
         reward = np.where(stepping, rewards(self.task, success, dropped), 0.0)
         terminated = stepping & (success | dropped)
-        truncated = stepping & ~terminated & (self._steps >= self.config.max_steps)
+        truncated = stepping & ~terminated & (self._steps >= self.max_episode_steps)
         self._autoreset = terminated | truncated
         return observation, reward, terminated, truncated, infos
+
+    def render(self) -> tuple[NDArray[np.uint8], ...] | None:
+        """One RGB image per sub-environment (``render_mode="rgb_array"``), else ``None``.
+
+        Raises:
+            RuntimeError: :meth:`reset` was never called.
+        """
+        if self.render_mode != "rgb_array":
+            return None
+        physics = self.physics
+        return tuple(render_environment(self.task, physics, i) for i in range(self.num_envs))
 
     def peg_contacts(self) -> ContactSet:
         """The peg's contacts of the last simulator step, batch ``(num_envs,)``."""

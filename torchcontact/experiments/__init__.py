@@ -8,7 +8,8 @@ observation, QMDP over the RBPF belief with :func:`qmdp_actions`, neural Q on
 :func:`belief_features`), with :class:`QLookup` mapping manipulation-state ids to Q rows.
 Scripts check their arguments with :func:`check_int`, :func:`check_real`, :func:`check_choice`
 and :func:`check_name` before any work, get a new run folder or the one to resume with
-:func:`open_run`, and write checkpoints atomically with :func:`save_checkpoint`.
+:func:`open_run`, log to it with :class:`RunLog` (arguments, ``charts/SPS``) and write
+checkpoints atomically with :func:`save_checkpoint`.
 
 Triangle grasp (:mod:`torchcontact.sim`): :func:`grasp_trials` simulates grasps of a triangle
 that the camera loses sight of, with tactile readings and the mode table of training
@@ -27,8 +28,10 @@ it by gradient, over a grid and by CMA-ES.
 
 from torchcontact._checks import check_choice, check_int, check_name, check_real
 from torchcontact.experiments._checkpoint import (
+    ARGUMENTS,
     CHECKPOINT,
     LOCATION,
+    RunLog,
     load_checkpoint,
     new_run_dir,
     open_run,
@@ -107,6 +110,7 @@ from torchcontact.experiments._triangle_grasp_plots import (
 )
 
 __all__ = [
+    "ARGUMENTS",
     "CHECKPOINT",
     "FILTER_SEED_OFFSETS",
     "FINGER_JOINTS",
@@ -125,6 +129,7 @@ __all__ = [
     "QLookup",
     "Replay",
     "RoundResult",
+    "RunLog",
     "Setting",
     "SlidingFit",
     "SlidingLogs",

@@ -1,7 +1,9 @@
-"""Run folders and checkpoints of the experiment scripts.
+"""Run folders, their logs and checkpoints of the experiment scripts.
 
 Every run gets its own folder, ``<out_dir>/<name>__<seed>__<unix seconds>`` (CleanRL's
-convention; :func:`new_run_dir`). A run writes ``checkpoint.pt`` there after every round with
+convention; :func:`new_run_dir`). :class:`RunLog` opens the run's TensorBoard log there,
+records the arguments (``args.json`` and a text table) and logs the throughput
+(``charts/SPS``). A run writes ``checkpoint.pt`` there after every round with
 :func:`save_checkpoint`, atomically, so a kill at any point leaves the previous checkpoint
 whole; ``--resume <run folder>`` continues that run in its folder (:func:`open_run`), after
 :func:`load_checkpoint` has checked that the arguments are the checkpoint's.
@@ -10,16 +12,22 @@ whole; ``--resume <run folder>`` continues that run in its folder (:func:`open_r
 from __future__ import annotations
 
 import dataclasses
+import json
 import os
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
+if TYPE_CHECKING:
+    from torch.utils.tensorboard import SummaryWriter
+
 #: The checkpoint's file name in a run folder.
 CHECKPOINT = "checkpoint.pt"
+#: The arguments' file name in a run folder.
+ARGUMENTS = "args.json"
 #: Arguments that only say where a run's folder is: never compared with a checkpoint's.
 LOCATION = ("name", "out_dir", "resume")
 _NONE = object()  # an argument the checkpoint or the script lacks
@@ -182,3 +190,53 @@ def open_run(
     if not (run_dir / CHECKPOINT).is_file():
         raise ValueError(f"resume: {str(run_dir)!r} is not a run folder with a {CHECKPOINT}")
     return run_dir, load_checkpoint(run_dir / CHECKPOINT, args, keys=keys, free=free)
+
+
+class RunLog:
+    """The TensorBoard log of a run folder, with the run's arguments and its throughput.
+
+    Opening it writes the arguments (``dataclasses.asdict(args)``) to :data:`ARGUMENTS` in
+    the folder, as JSON (values JSON lacks, e.g. paths, as their ``str``), and logs them as
+    the TensorBoard text ``hyperparameters``, a Markdown table (CleanRL's convention); a
+    resumed run writes them again. :meth:`steps_per_second` logs ``charts/SPS``.
+
+    Args:
+        run_dir: the run folder.
+        args: the script's arguments, a dataclass instance.
+
+    Raises:
+        ValueError: ``args`` is not a dataclass instance.
+    """
+
+    def __init__(self, run_dir: Path, args: Any) -> None:
+        if not dataclasses.is_dataclass(args) or isinstance(args, type):
+            raise ValueError(f"args must be a dataclass instance, got {type(args).__name__}")
+        from torch.utils.tensorboard import SummaryWriter  # loads tensorboard: only when logging
+
+        values = dataclasses.asdict(args)
+        (Path(run_dir) / ARGUMENTS).write_text(json.dumps(values, indent=2, default=str) + "\n")
+        self.writer: SummaryWriter = SummaryWriter(str(run_dir))
+        rows = "\n".join(f"| {name} | {_cell(value)} |" for name, value in values.items())
+        self.writer.add_text("hyperparameters", f"| argument | value |\n|---|---|\n{rows}")
+        self._start = time.perf_counter()
+
+    def steps_per_second(self, steps: int, global_step: int) -> float:
+        """Log and return ``charts/SPS``: ``steps`` done since the log opened, per second.
+
+        Args:
+            steps: the steps (environment steps, or the script's unit of work) this process
+                has done since it opened the log.
+            global_step: the point on the logs' step axis to log it at.
+        """
+        rate = steps / max(time.perf_counter() - self._start, 1e-9)
+        self.writer.add_scalar("charts/SPS", rate, global_step)
+        return rate
+
+    def close(self) -> None:
+        """Flush and close the TensorBoard writer."""
+        self.writer.close()
+
+
+def _cell(value: Any) -> str:
+    """A value as the text of a Markdown table cell (``|`` escaped)."""
+    return str(value).replace("|", "\\|")

@@ -545,29 +545,35 @@ class ManipulationGraph:
     ) -> Any:
         """Draw the graph: node area grows with visits, edge width with probability.
 
+        Each node shows its id; a legend beside the graph maps the ids to the labels, one
+        entry ``"id: label"`` per node (labels as long as a contact state's text would
+        cover the graph if written on the nodes).
+
         Args:
             ax: matplotlib ``Axes`` to draw on; ``None`` makes a new figure.
-            labels: node labels by id; default ``str(state)`` prefixed by the id.
+            labels: node labels by id; default ``str(state)``.
             positions: node positions by id; default a spring layout seeded with ``seed``.
             seed: seed of the default layout.
 
         Returns:
-            The ``Axes`` drawn on.
+            The ``Axes`` drawn on; ``ax.get_legend()`` is the legend of the node labels.
         """
         import matplotlib.pyplot as plt
         import networkx as nx
+        from matplotlib.lines import Line2D
 
         graph = self.to_networkx()
         if ax is None:
-            _, ax = plt.subplots(figsize=(7, 5))
+            _, ax = plt.subplots(figsize=(10, 5))
         if positions is None:
             positions = nx.spring_layout(graph, seed=seed)
         if labels is None:
-            labels = {i: f"{i}: {data['label']}" for i, data in graph.nodes(data=True)}
+            labels = {i: data["label"] for i, data in graph.nodes(data=True)}
+        color = "#9ecae1"
         most = max([v for _, v in graph.nodes(data="visits")] + [1])
         sizes = [300 + 1700 * v / most for _, v in graph.nodes(data="visits")]
         widths = [0.5 + 4.0 * p for _, _, p in graph.edges(data="probability")]
-        nx.draw_networkx_nodes(graph, positions, ax=ax, node_size=sizes, node_color="#9ecae1")
+        nx.draw_networkx_nodes(graph, positions, ax=ax, node_size=sizes, node_color=color)
         nx.draw_networkx_edges(
             graph,
             positions,
@@ -577,7 +583,19 @@ class ManipulationGraph:
             arrowsize=14,
             connectionstyle="arc3,rad=0.12",
         )
-        nx.draw_networkx_labels(graph, positions, labels=dict(labels), ax=ax, font_size=8)
+        ids = {i: str(i) for i in graph.nodes}
+        nx.draw_networkx_labels(graph, positions, labels=ids, ax=ax, font_size=8)
+        node = Line2D([], [], ls="", marker="o", markersize=8, color=color)
+        ax.legend(
+            [node] * graph.number_of_nodes(),
+            [f"{i}: {labels.get(i, '')}" for i in graph.nodes],
+            title="node labels",
+            loc="center left",
+            bbox_to_anchor=(1.0, 0.5),
+            fontsize=8,
+            title_fontsize=9,
+            frameon=False,
+        )
         ax.margins(0.15)
         ax.set_axis_off()
         return ax
