@@ -1,4 +1,5 @@
-"""Geometry: planar polygons, half-planes, rigid transforms, quaternions and contact slots.
+"""Geometry: planar polygons and half-planes, spatial boxes, spheres, capsules and half-spaces,
+rigid transforms, quaternions and contact slots.
 
 ``TIE_TOLERANCE`` is the relative tolerance (of the longest edge) within which the slot
 generation (:func:`planar_slots`) takes two edges as equally close.
@@ -29,13 +30,27 @@ from torchcontact.geometry._slots import (
     planar_slot_table,
     planar_slots,
 )
+from torchcontact.geometry._spatial_contact import (
+    SPATIAL_SLOT_COUNTS,
+    SpatialSlotTable,
+    slot_witness_points,
+    spatial_slot_table,
+    spatial_slots,
+)
+from torchcontact.geometry._spatial_shapes import Box, Capsule, HalfSpace, Sphere
 
 __all__ = [
+    "SPATIAL_SLOT_COUNTS",
     "TIE_TOLERANCE",
+    "Box",
+    "Capsule",
     "HalfPlane",
+    "HalfSpace",
     "PlanarSlotTable",
     "Polygon",
     "SlotGeometry",
+    "SpatialSlotTable",
+    "Sphere",
     "cross2",
     "dot2",
     "perpendicular",
@@ -48,6 +63,9 @@ __all__ = [
     "quat_mul",
     "quat_to_matrix",
     "rotation_matrix",
+    "slot_witness_points",
+    "spatial_slot_table",
+    "spatial_slots",
     "transform_points",
     "wrap_angle",
     "wrench_row",

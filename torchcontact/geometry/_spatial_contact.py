@@ -1,0 +1,753 @@
+"""Contact slots between spatial shapes: a fixed number of candidate contacts per pair of shapes.
+
+A *slot group* pairs a receiving shape with another shape; it yields a fixed number of slots
+(by the pair's types, :data:`SPATIAL_SLOT_COUNTS`), so that every scene batches without ragged
+tensors, and each slot's ``active`` flag says whether it is a contact candidate this step. The
+conventions are the planar engine's (:class:`SlotGeometry`): a slot's point lies on the
+receiving shape, its unit normal points from the other shape into the receiving one, and its
+gap ``φ`` is signed (``≥ 0`` separated), so that the other shape's witness point is
+``points − φ · normals`` (:func:`slot_witness_points`).
+
+Contacts per pair (either order; receiver first below):
+
+- box–half-space (8 slots): the box's corners against the plane;
+- sphere–half-space (1) and capsule–half-space (2, the end spheres of the capsule);
+- sphere–box (1): the closest point of the centre to the box (inside: the nearest face);
+- capsule–box (3): the point of the axis segment closest to the box (the minimum of the box's
+  signed distance along the segment, convex, found exactly among the 49 parameters where a
+  piece of it is stationary or has a kink), and the two ends of the part of the segment over the
+  face that the closest point's normal names (so a capsule lying on a face has two contacts); a
+  slot the others make redundant is not active. Each slot is the contact of a ball of the
+  capsule's radius on its axis with the box, exact while the axis stays outside the box; when it
+  enters, the depth is that of the deepest axis point (less than the capsule's penetration);
+- box–box (8): the separating-axis test over the 15 axes (the 6 face normals, the 9 edge
+  cross products; a face axis is preferred unless an edge axis is shallower by more than a
+  tolerance); on a face axis, the incident face of the other box (the face most anti-parallel
+  to the reference face) is clipped to the reference face: the clipped polygon's vertices (at
+  most 8: incident corners over the reference face, reference corners under the incident face,
+  crossings of their edges) are the slots, at their depth below the reference face; on an edge
+  axis, one slot at the closest points of the two edges [Ericson 2005, §4.4 and §5.1.9].
+
+Ericson, C. *Real-Time Collision Detection*. Morgan Kaufmann, 2005.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, fields, replace
+from typing import Any, TypeVar
+
+import torch
+from torch import Tensor
+
+from torchcontact._checks import check_float, check_unit_rows
+from torchcontact.geometry._quaternion import quat_to_matrix
+from torchcontact.geometry._slots import TIE_TOLERANCE, SlotGeometry
+from torchcontact.geometry._spatial_shapes import Box, Capsule, HalfSpace, SpatialShape, Sphere
+
+#: Slots per pair of shape types, receiving shape first (either order gives the same count).
+SPATIAL_SLOT_COUNTS: dict[tuple[str, str], int] = {
+    ("Box", "HalfSpace"): 8,
+    ("Sphere", "HalfSpace"): 1,
+    ("Capsule", "HalfSpace"): 2,
+    ("Sphere", "Box"): 1,
+    ("Capsule", "Box"): 3,
+    ("Box", "Box"): 8,
+}
+
+_Item = TypeVar("_Item", "SpatialSlotTable", "_Block")
+_Kernel = Callable[[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor], tuple[Tensor, ...]]
+
+
+@dataclass(frozen=True, eq=False)
+class _Block:
+    """The groups of one pair type, in the kernel's order (its receiver first).
+
+    Attributes:
+        kind: the pair's type names, e.g. ``("Capsule", "Box")``.
+        first: ``(G,)`` long shape indices of the kernel's receiver.
+        second: ``(G,)`` long shape indices of the kernel's other shape.
+        first_params: ``(G, P)`` the first shapes' parameters (see :func:`_params`).
+        second_params: ``(G, Q)`` the second shapes' parameters.
+        flipped: ``(G, 1)`` bool: the group's receiver is the kernel's other shape.
+    """
+
+    kind: tuple[str, str]
+    first: Tensor
+    second: Tensor
+    first_params: Tensor
+    second_params: Tensor
+    flipped: Tensor
+
+
+@dataclass(frozen=True, eq=False)
+class SpatialSlotTable:
+    """``Ns`` spatial shapes and ``G`` slot groups between them, grouped by pair type.
+
+    Attributes:
+        blocks: the groups of each pair type present (internal layout).
+        slot_order: ``(S,)`` long: for each slot in group order, its index among the blocks'
+            slots laid end to end.
+        slot_group: ``(S,)`` long: each slot's group index.
+        slot_receiver: ``(S,)`` long: shape index of each slot's receiver.
+        slot_other: ``(S,)`` long: shape index of each slot's other shape.
+        num_shapes: ``Ns``.
+        margin: candidate margin, metres.
+    """
+
+    blocks: tuple[_Block, ...]
+    slot_order: Tensor
+    slot_group: Tensor
+    slot_receiver: Tensor
+    slot_other: Tensor
+    num_shapes: int
+    margin: float
+
+    @property
+    def num_slots(self) -> int:
+        """``S``, the number of slots."""
+        return self.slot_order.shape[0]
+
+    def to(
+        self, *, dtype: torch.dtype, device: torch.device | str | None = None
+    ) -> SpatialSlotTable:
+        """The table with its float tensors in ``dtype`` and every tensor on ``device``."""
+
+        def convert(item: _Item) -> _Item:
+            changed: dict[str, Any] = {}
+            for entry in fields(item):
+                value = getattr(item, entry.name)
+                if isinstance(value, Tensor):
+                    target = dtype if value.is_floating_point() else value.dtype
+                    changed[entry.name] = value.to(device=device, dtype=target)
+            return replace(item, **changed)
+
+        converted = convert(self)
+        return replace(converted, blocks=tuple(convert(block) for block in self.blocks))
+
+
+def _params(shape: SpatialShape) -> list[float]:
+    """A shape's parameters: a box's half extents, a sphere's ``(r,)``, a capsule's
+    ``(r, l)``, a half-space's point and normal (body frame)."""
+    if isinstance(shape, Box):
+        return shape.half_extents.tolist()
+    if isinstance(shape, Sphere):
+        return [shape.radius]
+    if isinstance(shape, Capsule):
+        return [shape.radius, shape.half_length]
+    return [*shape.point.tolist(), *shape.normal.tolist()]
+
+
+def spatial_slot_table(
+    shapes: Sequence[SpatialShape],
+    groups: Sequence[tuple[int, int]],
+    *,
+    margin: float,
+) -> SpatialSlotTable:
+    """The float64 CPU :class:`SpatialSlotTable` of shapes and slot groups.
+
+    Args:
+        shapes: the ``Ns`` shapes (:class:`Box`, :class:`Sphere`, :class:`Capsule`,
+            :class:`HalfSpace`).
+        groups: ``G`` pairs ``(receiver, other)`` of indices into ``shapes`` whose types
+            form a pair of :data:`SPATIAL_SLOT_COUNTS` (in either order). A group's slots
+            follow the previous group's, in the order the module docstring lists them.
+        margin: gap below which a slot becomes a candidate, metres, ``>= 0``.
+
+    Raises:
+        ValueError: naming ``shapes``, ``groups`` or ``margin`` when it breaks these rules.
+    """
+    kinds = (Box, Sphere, Capsule, HalfSpace)
+    if not shapes or not all(isinstance(s, kinds) for s in shapes):
+        raise ValueError("shapes must be a non-empty sequence of Box, Sphere, Capsule, HalfSpace")
+    names = [type(s).__name__ for s in shapes]
+    members: dict[tuple[str, str], list[tuple[int, int, int, bool]]] = {}
+    counts: list[int] = []
+    for g, pair in enumerate(groups):
+        valid = (
+            isinstance(pair, tuple)
+            and len(pair) == 2
+            and all(isinstance(i, int) and 0 <= i < len(shapes) for i in pair)
+            and pair[0] != pair[1]
+        )
+        if not valid:
+            raise ValueError(
+                f"groups must be pairs (receiver, other) of distinct shape indices in "
+                f"[0, {len(shapes)}), got {pair!r}"
+            )
+        receiver, other = pair
+        kind = (names[receiver], names[other])
+        flipped = kind not in SPATIAL_SLOT_COUNTS
+        if flipped:
+            kind = kind[::-1]
+        if kind not in SPATIAL_SLOT_COUNTS:
+            raise ValueError(
+                f"groups: no contact between a {names[receiver]} and a {names[other]} "
+                f"(group {g}: {pair!r}); supported pairs: {sorted(SPATIAL_SLOT_COUNTS)}"
+            )
+        first, second = (other, receiver) if flipped else (receiver, other)
+        members.setdefault(kind, []).append((g, first, second, flipped))
+        counts.append(SPATIAL_SLOT_COUNTS[kind])
+    if not isinstance(margin, (int, float)) or not margin >= 0 or margin == float("inf"):
+        raise ValueError(f"margin must be a finite real >= 0, got {margin!r}")
+
+    long, f64 = torch.long, torch.float64
+    starts = [0, *itertools.accumulate(counts)]
+    blocks: list[_Block] = []
+    order: list[int] = []  # the group-order slot index of each block slot
+    for kind, entries in members.items():
+        count = SPATIAL_SLOT_COUNTS[kind]
+        blocks.append(
+            _Block(
+                kind=kind,
+                first=torch.tensor([e[1] for e in entries], dtype=long),
+                second=torch.tensor([e[2] for e in entries], dtype=long),
+                first_params=torch.tensor([_params(shapes[e[1]]) for e in entries], dtype=f64),
+                second_params=torch.tensor([_params(shapes[e[2]]) for e in entries], dtype=f64),
+                flipped=torch.tensor([[e[3]] for e in entries], dtype=torch.bool),
+            )
+        )
+        order.extend(starts[e[0]] + k for e in entries for k in range(count))
+    slot_order = torch.empty(len(order), dtype=long)
+    slot_order[torch.tensor(order, dtype=long)] = torch.arange(len(order), dtype=long)
+    slot_group = torch.repeat_interleave(
+        torch.arange(len(groups)), torch.tensor(counts, dtype=long)
+    )
+    receivers = torch.tensor([pair[0] for pair in groups], dtype=long)
+    others = torch.tensor([pair[1] for pair in groups], dtype=long)
+    return SpatialSlotTable(
+        blocks=tuple(blocks),
+        slot_order=slot_order,
+        slot_group=slot_group,
+        slot_receiver=receivers[slot_group],
+        slot_other=others[slot_group],
+        num_shapes=len(shapes),
+        margin=float(margin),
+    )
+
+
+def spatial_slots(table: SpatialSlotTable, poses: Tensor) -> SlotGeometry:
+    """Every slot of every group of a table, from the shapes' poses.
+
+    One pass of tensor operations per pair type present (no loop over groups or batch
+    entries). Differentiable in the poses, the discrete choices (separating axis, reference
+    and incident faces, clipped vertices, the closest parameter's candidate) held fixed.
+
+    Args:
+        table: the shapes and groups (its float tensors are cast to ``poses``' dtype and
+            device here).
+        poses: ``(*B, Ns, 7)`` float32/float64 world poses of the table's shapes, position
+            then unit quaternion ``(w, x, y, z)`` (a half-space's point and normal are in its
+            body frame: at the identity pose, the world frame).
+
+    Returns:
+        The :class:`SlotGeometry` of the ``S`` slots: ``points`` ``(*B, S, 3)`` on the
+        receivers, ``normals`` ``(*B, S, 3)`` from the other shapes into the receivers,
+        ``phi`` ``(*B, S)``, ``active`` ``(*B, S)``, world frame.
+
+    Raises:
+        ValueError: ``poses`` is not a finite float tensor of shape ``(*B, Ns, 7)`` with unit
+            quaternions.
+    """
+    poses = check_float(
+        "poses",
+        poses,
+        trailing=(table.num_shapes, 7),
+        min_ndim=2,
+        what=f"(*B, {table.num_shapes}, 7)",
+    )
+    check_unit_rows("poses[..., 3:] (quaternions)", poses[..., 3:])
+    table = table.to(dtype=poses.dtype, device=poses.device)
+    position, rotation = poses[..., :3], quat_to_matrix(poses[..., 3:])
+    points_parts, normal_parts, phi_parts, valid_parts = [], [], [], []
+    for block in table.blocks:
+        points, normals, phi, valid = _KERNELS[block.kind](
+            position.index_select(-2, block.first),
+            rotation.index_select(-3, block.first),
+            block.first_params,
+            position.index_select(-2, block.second),
+            rotation.index_select(-3, block.second),
+            block.second_params,
+        )
+        # A flipped group's receiver is the kernel's other shape: its witness, reversed normal.
+        flipped = block.flipped.unsqueeze(-1)
+        points = torch.where(flipped, points - phi.unsqueeze(-1) * normals, points)
+        normals = torch.where(flipped, -normals, normals)
+        points_parts.append(points.flatten(-3, -2))
+        normal_parts.append(normals.flatten(-3, -2))
+        phi_parts.append(phi.flatten(-2))
+        valid_parts.append(valid.flatten(-2))
+    order = table.slot_order
+    phi = torch.cat(phi_parts, -1).index_select(-1, order)
+    return SlotGeometry(
+        points=torch.cat(points_parts, -2).index_select(-2, order),
+        normals=torch.cat(normal_parts, -2).index_select(-2, order),
+        phi=phi,
+        active=torch.cat(valid_parts, -1).index_select(-1, order) & (phi <= table.margin),
+    )
+
+
+def slot_witness_points(slots: SlotGeometry) -> tuple[Tensor, Tensor]:
+    """The two shapes' witness points of each slot: ``points`` on the receiver and
+    ``points − φ · normals`` on the other shape.
+
+    Args:
+        slots: ``(*B, S, d)`` points and normals, ``(*B, S)`` gaps.
+
+    Returns:
+        ``(*B, S, d)`` points on the receivers and on the other shapes, world frame.
+    """
+    return slots.points, slots.points - slots.phi.unsqueeze(-1) * slots.normals
+
+
+# --- kernels: (*B, G, ·) poses of the first and second shapes, (G, ·) parameters ------------
+# Each returns points (*B, G, K, 3) on the first shape, normals (*B, G, K, 3) from the second
+# into the first, gaps φ (*B, G, K) and validity (*B, G, K).
+
+
+def _tolerance(dtype: torch.dtype, scale: Tensor) -> Tensor:
+    """Absolute tie tolerance for lengths of size ``scale``: ``TIE_TOLERANCE`` relative in
+    float64, 64 ulps in float32 (where ``TIE_TOLERANCE`` is below rounding)."""
+    return max(TIE_TOLERANCE, 64 * torch.finfo(dtype).eps) * scale
+
+
+def _sign(x: Tensor) -> Tensor:
+    """``±1`` by the sign of ``x`` (``+1`` at zero)."""
+    return torch.where(x < 0, -1.0, 1.0).to(x.dtype)
+
+
+def _safe_divide(numerator: Tensor, denominator: Tensor, fallback: float) -> Tensor:
+    """``numerator / denominator``, ``fallback`` where the denominator is zero (finite
+    gradients on both branches)."""
+    zero = denominator.abs() <= torch.finfo(denominator.dtype).tiny
+    safe = torch.where(zero, torch.ones_like(denominator), denominator)
+    return torch.where(zero, fallback, numerator / safe)
+
+
+def _to_world(rotation: Tensor, position: Tensor, local: Tensor) -> Tensor:
+    """``(*B, G, K, 3)`` world points ``R p + t`` of body points ``local`` ``(..., K, 3)``."""
+    return local @ rotation.mT + position.unsqueeze(-2)
+
+
+def _points_vs_plane(
+    centres: Tensor, radius: Tensor, normal: Tensor, point: Tensor
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Balls of centres ``(*B, G, K, 3)`` and radius ``(G, 1)`` against planes through
+    ``point`` with normal ``normal`` (``(*B, G, 3)``, world)."""
+    normal = normal.unsqueeze(-2).expand_as(centres)
+    distance = ((centres - point.unsqueeze(-2)) * normal).sum(-1) - radius
+    points = centres - radius.unsqueeze(-1) * normal
+    return points, normal, distance, torch.ones_like(distance, dtype=torch.bool)
+
+
+def _half_space_world(rotation: Tensor, position: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
+    """World ``(normal, point)`` ``(*B, G, 3)`` of half-spaces with body parameters ``(G, 6)``."""
+    normal = (rotation @ params[:, 3:].unsqueeze(-1)).squeeze(-1)
+    point = (rotation @ params[:, :3].unsqueeze(-1)).squeeze(-1) + position
+    return normal, point
+
+
+def _box_corners(half: Tensor) -> Tensor:
+    """``(G, 8, 3)`` body corners of boxes of half extents ``(G, 3)``, x fastest."""
+    signs = torch.tensor(
+        list(itertools.product((-1.0, 1.0), repeat=3)), dtype=half.dtype, device=half.device
+    ).flip(-1)
+    return signs * half.unsqueeze(-2)
+
+
+def _box_half_space(
+    position: Tensor,
+    rotation: Tensor,
+    half: Tensor,
+    plane_position: Tensor,
+    plane_rotation: Tensor,
+    plane: Tensor,
+) -> tuple[Tensor, ...]:
+    corners = _to_world(rotation, position, _box_corners(half))
+    normal, point = _half_space_world(plane_rotation, plane_position, plane)
+    return _points_vs_plane(corners, torch.zeros_like(half[:, :1]), normal, point)
+
+
+def _sphere_half_space(
+    position: Tensor,
+    rotation: Tensor,
+    sphere: Tensor,
+    plane_position: Tensor,
+    plane_rotation: Tensor,
+    plane: Tensor,
+) -> tuple[Tensor, ...]:
+    del rotation
+    normal, point = _half_space_world(plane_rotation, plane_position, plane)
+    return _points_vs_plane(position.unsqueeze(-2), sphere[:, :1], normal, point)
+
+
+def _capsule_ends(position: Tensor, rotation: Tensor, capsule: Tensor) -> Tensor:
+    """``(*B, G, 2, 3)`` world end points ``t ∓ l · axis`` of capsule axes."""
+    axis = rotation[..., :, 2] * capsule[:, 1:2]
+    return torch.stack([position - axis, position + axis], dim=-2)
+
+
+def _capsule_half_space(
+    position: Tensor,
+    rotation: Tensor,
+    capsule: Tensor,
+    plane_position: Tensor,
+    plane_rotation: Tensor,
+    plane: Tensor,
+) -> tuple[Tensor, ...]:
+    normal, point = _half_space_world(plane_rotation, plane_position, plane)
+    return _points_vs_plane(
+        _capsule_ends(position, rotation, capsule), capsule[:, :1], normal, point
+    )
+
+
+def _box_distance(local: Tensor, half: Tensor) -> Tensor:
+    """Signed distance ``(..., K)`` of box-frame points ``(..., K, 3)`` to boxes ``(G, 1, 3)``."""
+    excess = local.abs() - half
+    outside: Tensor = torch.linalg.vector_norm(excess.clamp(min=0.0), dim=-1)
+    return outside + excess.amax(-1).clamp(max=0.0)
+
+
+def _balls_vs_box(local: Tensor, radius: Tensor, half: Tensor) -> tuple[Tensor, Tensor]:
+    """Balls of box-frame centres ``local`` ``(*B, G, K, 3)`` and radius ``(G, 1)`` against
+    boxes of half extents ``(G, 3)``: box-frame normals (from the box into the ball) and gaps.
+
+    Outside, the normal is along the centre minus its closest box point; inside, it is the
+    nearest face's outward normal and the gap is minus that face's depth, minus the radius.
+    """
+    half = half.unsqueeze(-2)
+    closest = torch.maximum(torch.minimum(local, half), -half)
+    offset = local - closest
+    square = (offset * offset).sum(-1, keepdim=True)
+    outside = (local.abs() > half).any(-1, keepdim=True)
+    distance = torch.sqrt(torch.where(outside, square, torch.ones_like(square)))
+    depth = half - local.abs()
+    face = depth.argmin(-1, keepdim=True)
+    inward = torch.zeros_like(local).scatter(-1, face, _sign(local.gather(-1, face)))
+    normal = torch.where(outside, offset / distance, inward)
+    gap = torch.where(outside, distance, -depth.gather(-1, face)).squeeze(-1) - radius
+    return normal, gap
+
+
+def _sphere_box(
+    position: Tensor,
+    rotation: Tensor,
+    sphere: Tensor,
+    box_position: Tensor,
+    box_rotation: Tensor,
+    half: Tensor,
+) -> tuple[Tensor, ...]:
+    del rotation
+    local = (position - box_position).unsqueeze(-2) @ box_rotation  # (*B, G, 1, 3)
+    radius = sphere[:, :1]
+    normal_local, gap = _balls_vs_box(local, radius, half)
+    normal = normal_local @ box_rotation.mT
+    points = position.unsqueeze(-2) - radius.unsqueeze(-1) * normal
+    return points, normal, gap, torch.ones_like(gap, dtype=torch.bool)
+
+
+def _stationary_parameters(start: Tensor, direction: Tensor, half: Tensor) -> Tensor:
+    """``(*B, G, 49)`` segment parameters in ``[0, 1]`` among which the box's signed distance
+    along ``p(t) = start + t · direction`` (box frame, ``(*B, G, 3)``) takes its minimum.
+
+    The signed distance is convex along the segment; it is the root of a piecewise quadratic
+    outside the box (pieces split where a coordinate crosses ``±h``) and the largest of six
+    linear functions ``s p_i(t) − h_i`` inside it. Its minimum lies at an end (2), where a
+    coordinate crosses a face plane (6), at the stationary point of an outside piece (26 sign
+    patterns of the coordinates beyond the box) or where two inside pieces meet (15 pairs).
+    """
+    h = half.expand_as(start)
+    ends = torch.stack([torch.zeros_like(start[..., 0]), torch.ones_like(start[..., 0])], -1)
+    crossings = torch.cat(
+        [_safe_divide(h - start, direction, 0.0), _safe_divide(-h - start, direction, 0.0)], -1
+    )
+    patterns = torch.tensor(
+        [p for p in itertools.product((-1.0, 0.0, 1.0), repeat=3) if any(p)],
+        dtype=start.dtype,
+        device=start.device,
+    )  # (26, 3)
+    used = patterns.abs()
+    beyond = direction.unsqueeze(-2) * (start.unsqueeze(-2) - patterns * h.unsqueeze(-2))
+    stationary = _safe_divide(
+        -(used * beyond).sum(-1), (used * direction.unsqueeze(-2) ** 2).sum(-1), 0.0
+    )
+    pieces = [(i, s) for i in range(3) for s in (1.0, -1.0)]
+    pairs = list(itertools.combinations(range(6), 2))
+    first = torch.tensor([pieces[a][0] for a, _ in pairs], device=start.device)
+    second = torch.tensor([pieces[b][0] for _, b in pairs], device=start.device)
+    first_sign = torch.tensor(
+        [pieces[a][1] for a, _ in pairs], dtype=start.dtype, device=start.device
+    )
+    second_sign = torch.tensor(
+        [pieces[b][1] for _, b in pairs], dtype=start.dtype, device=start.device
+    )
+    meets = _safe_divide(
+        h.index_select(-1, first)
+        - h.index_select(-1, second)
+        - first_sign * start.index_select(-1, first)
+        + second_sign * start.index_select(-1, second),
+        first_sign * direction.index_select(-1, first)
+        - second_sign * direction.index_select(-1, second),
+        0.0,
+    )
+    return torch.cat([ends, crossings, stationary, meets], -1).clamp(0.0, 1.0)
+
+
+def _capsule_box(
+    position: Tensor,
+    rotation: Tensor,
+    capsule: Tensor,
+    box_position: Tensor,
+    box_rotation: Tensor,
+    half: Tensor,
+) -> tuple[Tensor, ...]:
+    radius, length = capsule[:, :1], capsule[:, 1:2]
+    centre = ((position - box_position).unsqueeze(-2) @ box_rotation).squeeze(-2)
+    axis = (rotation[..., :, 2].unsqueeze(-2) @ box_rotation).squeeze(-2)
+    start, direction = centre - length * axis, 2 * length * axis  # box frame, (*B, G, 3)
+    candidates = _stationary_parameters(start, direction, half.unsqueeze(-2))
+    along = start.unsqueeze(-2) + candidates.unsqueeze(-1) * direction.unsqueeze(-2)
+    best = _box_distance(along, half.unsqueeze(-2)).argmin(-1, keepdim=True)
+    closest = candidates.gather(-1, best)  # (*B, G, 1)
+    normal_local, _ = _balls_vs_box(
+        start.unsqueeze(-2) + closest.unsqueeze(-1) * direction.unsqueeze(-2), radius, half
+    )
+    # The part of the segment over the face the closest normal names: |p_j(t)| <= h_j for the
+    # two other axes j.
+    face = normal_local.squeeze(-2).abs().argmax(-1, keepdim=True)
+    h = half.expand_as(start)
+    low = _safe_divide(-h - start, direction, -torch.inf)
+    high = _safe_divide(h - start, direction, torch.inf)
+    parallel = direction.abs() <= torch.finfo(direction.dtype).tiny
+    inside = start.abs() <= h
+    low, high = torch.minimum(low, high), torch.maximum(low, high)
+    low = torch.where(parallel, torch.where(inside, -torch.inf, torch.inf), low)
+    high = torch.where(parallel, torch.where(inside, torch.inf, -torch.inf), high)
+    is_face = torch.zeros_like(start, dtype=torch.bool).scatter(-1, face, True)
+    low = torch.where(is_face, -torch.inf, low).amax(-1, keepdim=True).clamp(min=0.0)
+    high = torch.where(is_face, torch.inf, high).amin(-1, keepdim=True).clamp(max=1.0)
+    over = low <= high
+    ends = torch.cat([torch.where(over, low, closest), torch.where(over, high, closest)], -1)
+    parameters = torch.cat([closest, ends], -1)  # (*B, G, 3)
+    local = start.unsqueeze(-2) + parameters.unsqueeze(-1) * direction.unsqueeze(-2)
+    normal_local, gap = _balls_vs_box(local, radius, half)
+    normal = normal_local @ box_rotation.mT
+    centres = _to_world(box_rotation, box_position, local)
+    points = centres - radius.unsqueeze(-1) * normal
+    # Redundant slots: the closest point where an end is as deep (the gap is convex along the
+    # segment), the second end where the part over the face is a point.
+    scale = torch.maximum(half.amax(-1, keepdim=True), radius + length)
+    tolerance = _tolerance(gap.dtype, scale)
+    end_covers = over & (gap[..., 1:].amin(-1, keepdim=True) <= gap[..., :1] + tolerance)
+    distinct = (high - low) * 2 * length > tolerance
+    valid = torch.cat([~end_covers, over, over & distinct], -1)
+    return points, normal, gap, valid
+
+
+def _column(rotation: Tensor, index: Tensor) -> Tensor:
+    """``(*B, G, 3)`` the columns ``index`` ``(*B, G)`` of rotations ``(*B, G, 3, 3)``."""
+    return rotation.gather(-1, index[..., None, None].expand(*index.shape, 3, 1)).squeeze(-1)
+
+
+def _pick(values: Tensor, index: Tensor) -> Tensor:
+    """``(*B, G)`` entries ``index`` ``(*B, G)`` of ``values`` ``(*B, G, 3)``."""
+    return values.gather(-1, index.unsqueeze(-1)).squeeze(-1)
+
+
+def _cross2(a: Tensor, b: Tensor) -> Tensor:
+    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+
+
+def _box_box(
+    position: Tensor,
+    rotation: Tensor,
+    half: Tensor,
+    other_position: Tensor,
+    other_rotation: Tensor,
+    other_half: Tensor,
+) -> tuple[Tensor, ...]:
+    dtype = position.dtype
+    half_a = half.expand(*position.shape[:-1], 3)
+    half_b = other_half.expand(*position.shape[:-1], 3)
+    tolerance = _tolerance(dtype, torch.maximum(half.amax(-1), other_half.amax(-1)))  # (G,)
+    offset = position - other_position  # from B to A
+    axes_a, axes_b = rotation.mT, other_rotation.mT  # rows: the boxes' axes
+    edges = torch.linalg.cross(axes_a.unsqueeze(-2), axes_b.unsqueeze(-3)).flatten(-3, -2)
+    axes = torch.cat([axes_a, axes_b, edges], -2)  # (*B, G, 15, 3)
+    length = torch.linalg.vector_norm(axes, dim=-1)
+    usable = length > torch.finfo(dtype).eps ** 0.5
+    unit = axes / torch.where(usable, length, torch.ones_like(length)).unsqueeze(-1)
+    reach = ((unit @ rotation).abs() * half_a.unsqueeze(-2)).sum(-1) + (
+        (unit @ other_rotation).abs() * half_b.unsqueeze(-2)
+    ).sum(-1)
+    overlap = reach - (unit * offset.unsqueeze(-2)).sum(-1).abs()
+    overlap = torch.where(usable, overlap, torch.inf)
+    # Prefer B's faces (A's corners become the slots), then faces over edges.
+    a_depth, a_axis = overlap[..., :3].min(-1)
+    b_depth, b_axis = overlap[..., 3:6].min(-1)
+    ref_is_a = a_depth < b_depth - tolerance
+    face_depth = torch.where(ref_is_a, a_depth, b_depth)
+    edge_depth, edge_axis = overlap[..., 6:].min(-1)
+    is_edge = edge_depth < face_depth - tolerance
+
+    face = _face_contact(
+        ref_is_a,
+        torch.where(ref_is_a, a_axis, b_axis),
+        (position, rotation, half_a),
+        (other_position, other_rotation, half_b),
+        tolerance,
+    )
+    edge = _edge_contact(
+        edge_axis, unit, (position, rotation, half_a), (other_position, other_rotation, half_b)
+    )
+    return tuple(
+        torch.where(is_edge.view(*is_edge.shape, *([1] * (f.dim() - is_edge.dim()))), e, f)
+        for f, e in zip(face, edge, strict=True)
+    )
+
+
+_Box = tuple[Tensor, Tensor, Tensor]
+
+
+def _face_contact(
+    ref_is_a: Tensor, ref_axis: Tensor, box_a: _Box, box_b: _Box, tolerance: Tensor
+) -> tuple[Tensor, ...]:
+    """Clip the incident face to the reference face; up to 8 points on A (``(*B, G, 8, ·)``)."""
+    flag = ref_is_a.unsqueeze(-1)
+    flag2 = flag.unsqueeze(-1)
+    t_ref = torch.where(flag, box_a[0], box_b[0])
+    r_ref = torch.where(flag2, box_a[1], box_b[1])
+    h_ref = torch.where(flag, box_a[2], box_b[2])
+    t_inc = torch.where(flag, box_b[0], box_a[0])
+    r_inc = torch.where(flag2, box_b[1], box_a[1])
+    h_inc = torch.where(flag, box_b[2], box_a[2])
+    column = _column(r_ref, ref_axis)
+    n_ref = column * _sign(((t_inc - t_ref) * column).sum(-1, keepdim=True))
+    alignment = (n_ref.unsqueeze(-2) @ r_inc).squeeze(-2)  # (*B, G, 3)
+    inc_axis = alignment.abs().argmax(-1)
+    n_inc = -_column(r_inc, inc_axis) * _sign(_pick(alignment, inc_axis)).unsqueeze(-1)
+    f_ref = t_ref + _pick(h_ref, ref_axis).unsqueeze(-1) * n_ref
+    f_inc = t_inc + _pick(h_inc, inc_axis).unsqueeze(-1) * n_inc
+    i1, i2 = (ref_axis + 1) % 3, (ref_axis + 2) % 3
+    j1, j2 = (inc_axis + 1) % 3, (inc_axis + 2) % 3
+    u1, u2 = _column(r_ref, i1), _column(r_ref, i2)
+    a, b = _pick(h_ref, i1).unsqueeze(-1), _pick(h_ref, i2).unsqueeze(-1)  # (*B, G, 1)
+    w1 = _column(r_inc, j1) * _pick(h_inc, j1).unsqueeze(-1)
+    w2 = _column(r_inc, j2) * _pick(h_inc, j2).unsqueeze(-1)
+    cycle = torch.tensor(
+        [[1.0, 1.0], [-1.0, 1.0], [-1.0, -1.0], [1.0, -1.0]], dtype=a.dtype, device=a.device
+    )
+    corners = (
+        f_inc.unsqueeze(-2) + cycle[:, :1] * w1.unsqueeze(-2) + cycle[:, 1:] * w2.unsqueeze(-2)
+    )  # (*B, G, 4, 3), a cycle around the incident face
+    relative = corners - f_ref.unsqueeze(-2)
+    u = (relative * u1.unsqueeze(-2)).sum(-1)
+    v = (relative * u2.unsqueeze(-2)).sum(-1)
+    depth = (relative * n_ref.unsqueeze(-2)).sum(-1)  # (*B, G, 4)
+    tol = tolerance.unsqueeze(-1)  # (G, 1)
+
+    # 1. incident corners over the reference face.
+    corner_valid = (u.abs() <= a + tol) & (v.abs() <= b + tol)
+
+    # 2. reference corners under the incident face (and not at one of its corners).
+    quad = torch.stack([u, v], -1)  # (*B, G, 4, 2)
+    side = quad.roll(-1, dims=-2) - quad
+    area = _cross2(quad, quad.roll(-1, dims=-2)).sum(-1, keepdim=True)
+    ref_2d = torch.stack([cycle[:, 0] * a, cycle[:, 1] * b], -1)  # (*B, G, 4, 2)
+    to_ref = ref_2d.unsqueeze(-2) - quad.unsqueeze(-3)  # (*B, G, 4 ref, 4 inc, 2)
+    inward = _cross2(side.unsqueeze(-3), to_ref) * _sign(area).unsqueeze(-1)
+    inward = inward / torch.linalg.vector_norm(side, dim=-1).unsqueeze(-2)
+    apart = torch.linalg.vector_norm(to_ref, dim=-1) > tol.unsqueeze(-1)
+    ref_valid = ((inward >= -tol.unsqueeze(-1)) & apart).all(-1)
+    on_ref = (
+        f_ref.unsqueeze(-2)
+        + ref_2d[..., :1] * u1.unsqueeze(-2)
+        + ref_2d[..., 1:] * u2.unsqueeze(-2)
+    )
+    lift = ((f_inc.unsqueeze(-2) - on_ref) * n_inc.unsqueeze(-2)).sum(-1) / (
+        (n_ref * n_inc).sum(-1, keepdim=True)
+    )
+    ref_points = on_ref + lift.unsqueeze(-1) * n_ref.unsqueeze(-2)
+
+    # 3. incident edges crossing the reference edges' lines u = ±a, v = ±b within them.
+    across = torch.stack([u, u, v, v], -1)  # (*B, G, 4 edges, 4 lines)
+    lengthwise = torch.stack([v, v, u, u], -1)
+    line = torch.stack([a, -a, b, -b], -1)  # (*B, G, 1, 4)
+    extent = torch.stack([b, b, a, a], -1)
+    start, stop = across - line, across.roll(-1, dims=-2) - line
+    crossing = (
+        (start * stop < 0) & (start.abs() > tol.unsqueeze(-1)) & (stop.abs() > tol.unsqueeze(-1))
+    )
+    fraction = torch.where(crossing, start / torch.where(crossing, start - stop, 1.0), 0.5)
+    sideways = lengthwise + fraction * (lengthwise.roll(-1, dims=-3) - lengthwise)
+    cross_valid = crossing & (sideways.abs() < extent - tol.unsqueeze(-1))
+    edge_start = corners.unsqueeze(-2)
+    edge_step = (corners.roll(-1, dims=-2) - corners).unsqueeze(-2)
+    cross_points = (edge_start + fraction.unsqueeze(-1) * edge_step).flatten(-3, -2)
+    cross_depth = (
+        depth.unsqueeze(-1) + fraction * (depth.roll(-1, dims=-1) - depth).unsqueeze(-1)
+    ).flatten(-2)
+
+    points = torch.cat([corners, ref_points, cross_points], -2)  # (*B, G, 24, 3)
+    gap = torch.cat([depth, lift, cross_depth], -1)
+    valid = torch.cat([corner_valid, ref_valid, cross_valid.flatten(-2)], -1)
+    keep = torch.sort(valid.to(torch.uint8), dim=-1, descending=True, stable=True).indices[..., :8]
+    points = points.gather(-2, keep.unsqueeze(-1).expand(*keep.shape, 3))
+    gap, valid = gap.gather(-1, keep), valid.gather(-1, keep)
+    normal = n_ref.unsqueeze(-2).expand_as(points)
+    # Points on A: the incident face's when B is the reference; else their projections on
+    # A's reference face.
+    points = torch.where(flag2, points - gap.unsqueeze(-1) * normal, points)
+    normal = torch.where(flag2, -normal, normal)
+    return points, normal, gap, valid
+
+
+def _edge_contact(edge_axis: Tensor, unit: Tensor, box_a: _Box, box_b: _Box) -> tuple[Tensor, ...]:
+    """The closest points of A's and B's support edges along an edge axis: one slot of 8."""
+    t_a, r_a, h_a = box_a
+    t_b, r_b, h_b = box_b
+    axis = unit.gather(-2, (6 + edge_axis)[..., None, None].expand(*edge_axis.shape, 1, 3)).squeeze(
+        -2
+    )
+    normal = axis * _sign(((t_a - t_b) * axis).sum(-1, keepdim=True))  # from B into A
+    i, j = edge_axis // 3, edge_axis % 3
+    along_a, along_b = _column(r_a, i), _column(r_b, j)
+    # The edges: A's farthest along −n, B's farthest along +n (their axis terms dropped).
+    keep_a = torch.ones_like(h_a).scatter(-1, i.unsqueeze(-1), 0.0)
+    keep_b = torch.ones_like(h_b).scatter(-1, j.unsqueeze(-1), 0.0)
+    toward_a = (normal.unsqueeze(-2) @ r_a).squeeze(-2)
+    toward_b = (normal.unsqueeze(-2) @ r_b).squeeze(-2)
+    centre_a = t_a + ((-_sign(toward_a) * h_a * keep_a).unsqueeze(-2) @ r_a.mT).squeeze(-2)
+    centre_b = t_b + ((_sign(toward_b) * h_b * keep_b).unsqueeze(-2) @ r_b.mT).squeeze(-2)
+    reach_a, reach_b = _pick(h_a, i).unsqueeze(-1), _pick(h_b, j).unsqueeze(-1)
+    between = centre_a - centre_b
+    cosine = (along_a * along_b).sum(-1, keepdim=True)
+    d_a, d_b = (along_a * between).sum(-1, keepdim=True), (along_b * between).sum(-1, keepdim=True)
+    sine2 = 1 - cosine * cosine
+    s_a = torch.minimum(
+        torch.maximum(_safe_divide(cosine * d_b - d_a, sine2, 0.0), -reach_a), reach_a
+    )
+    s_b = torch.minimum(torch.maximum(d_b + cosine * s_a, -reach_b), reach_b)
+    s_a = torch.minimum(torch.maximum(cosine * s_b - d_a, -reach_a), reach_a)
+    point_a = centre_a + s_a * along_a
+    point_b = centre_b + s_b * along_b
+    gap = ((point_a - point_b) * normal).sum(-1, keepdim=True)
+    points = torch.cat(
+        [point_a.unsqueeze(-2), point_a.unsqueeze(-2).expand(*point_a.shape[:-1], 7, 3)], -2
+    )
+    normals = normal.unsqueeze(-2).expand_as(points)
+    gaps = torch.cat([gap, gap.expand(*gap.shape[:-1], 7)], -1)
+    valid = torch.zeros_like(gaps, dtype=torch.bool)
+    valid[..., 0] = True
+    return points, normals, gaps, valid
+
+
+_KERNELS: dict[tuple[str, str], _Kernel] = {
+    ("Box", "HalfSpace"): _box_half_space,
+    ("Sphere", "HalfSpace"): _sphere_half_space,
+    ("Capsule", "HalfSpace"): _capsule_half_space,
+    ("Sphere", "Box"): _sphere_box,
+    ("Capsule", "Box"): _capsule_box,
+    ("Box", "Box"): _box_box,
+}
