@@ -2,7 +2,9 @@
 rigid transforms, quaternions and contact slots.
 
 ``TIE_TOLERANCE`` is the relative tolerance (of the longest edge) within which the slot
-generation (:func:`planar_slots`) takes two edges as equally close.
+generation (:func:`planar_slots`) takes two edges as equally close. ``FACE_PREFERENCE`` is the
+relative margin by which a box-box separating axis must beat a preferred one
+(:func:`spatial_slots`).
 """
 
 from torchcontact.geometry._quaternion import (
@@ -31,6 +33,7 @@ from torchcontact.geometry._slots import (
     planar_slots,
 )
 from torchcontact.geometry._spatial_contact import (
+    FACE_PREFERENCE,
     SPATIAL_SLOT_COUNTS,
     SpatialSlotTable,
     slot_witness_points,
@@ -40,6 +43,7 @@ from torchcontact.geometry._spatial_contact import (
 from torchcontact.geometry._spatial_shapes import Box, Capsule, HalfSpace, Sphere
 
 __all__ = [
+    "FACE_PREFERENCE",
     "SPATIAL_SLOT_COUNTS",
     "TIE_TOLERANCE",
     "Box",

@@ -56,6 +56,12 @@ SPATIAL_SLOT_COUNTS: dict[tuple[str, str], int] = {
     ("Box", "Box"): 8,
 }
 
+#: Relative margin by which a box-box separating axis must beat a preferred one: B's face
+#: normals are preferred to A's and face normals to edge cross products, so that resting and
+#: nearly aligned boxes keep a face manifold (several points) rather than flicker to a single
+#: edge point; the reported depth then exceeds the least penetration by at most this fraction.
+FACE_PREFERENCE = 0.05
+
 _Item = TypeVar("_Item", "SpatialSlotTable", "_Block")
 _Kernel = Callable[[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor], tuple[Tensor, ...]]
 
@@ -257,7 +263,7 @@ def spatial_slots(table: SpatialSlotTable, poses: Tensor) -> SlotGeometry:
         min_ndim=2,
         what=f"(*B, {table.num_shapes}, 7)",
     )
-    check_unit_rows("poses[..., 3:] (quaternions)", poses[..., 3:])
+    check_unit_rows("poses[..., 3:] (quaternions)", poses[..., 3:].detach())
     table = table.to(dtype=poses.dtype, device=poses.device)
     position, rotation = poses[..., :3], quat_to_matrix(poses[..., 3:])
     points_parts, normal_parts, phi_parts, valid_parts = [], [], [], []
@@ -506,7 +512,7 @@ def _capsule_box(
     centre = ((position - box_position).unsqueeze(-2) @ box_rotation).squeeze(-2)
     axis = (rotation[..., :, 2].unsqueeze(-2) @ box_rotation).squeeze(-2)
     start, direction = centre - length * axis, 2 * length * axis  # box frame, (*B, G, 3)
-    candidates = _stationary_parameters(start, direction, half.unsqueeze(-2))
+    candidates = _stationary_parameters(start, direction, half)
     along = start.unsqueeze(-2) + candidates.unsqueeze(-1) * direction.unsqueeze(-2)
     best = _box_distance(along, half.unsqueeze(-2)).argmin(-1, keepdim=True)
     closest = candidates.gather(-1, best)  # (*B, G, 1)
@@ -583,13 +589,15 @@ def _box_box(
     ).sum(-1)
     overlap = reach - (unit * offset.unsqueeze(-2)).sum(-1).abs()
     overlap = torch.where(usable, overlap, torch.inf)
-    # Prefer B's faces (A's corners become the slots), then faces over edges.
+    # Prefer B's faces (A's corners become the slots), then A's, then edges: the first
+    # whose overlap is within FACE_PREFERENCE of the least.
     a_depth, a_axis = overlap[..., :3].min(-1)
     b_depth, b_axis = overlap[..., 3:6].min(-1)
-    ref_is_a = a_depth < b_depth - tolerance
-    face_depth = torch.where(ref_is_a, a_depth, b_depth)
     edge_depth, edge_axis = overlap[..., 6:].min(-1)
-    is_edge = edge_depth < face_depth - tolerance
+    least = torch.minimum(torch.minimum(a_depth, b_depth), edge_depth)
+    accepted = least + FACE_PREFERENCE * least.abs() + tolerance
+    ref_is_a = b_depth > accepted
+    is_edge = ref_is_a & (a_depth > accepted)
 
     face = _face_contact(
         ref_is_a,
@@ -680,7 +688,7 @@ def _face_contact(
         (start * stop < 0) & (start.abs() > tol.unsqueeze(-1)) & (stop.abs() > tol.unsqueeze(-1))
     )
     fraction = torch.where(crossing, start / torch.where(crossing, start - stop, 1.0), 0.5)
-    sideways = lengthwise + fraction * (lengthwise.roll(-1, dims=-3) - lengthwise)
+    sideways = lengthwise + fraction * (lengthwise.roll(-1, dims=-2) - lengthwise)
     cross_valid = crossing & (sideways.abs() < extent - tol.unsqueeze(-1))
     edge_start = corners.unsqueeze(-2)
     edge_step = (corners.roll(-1, dims=-2) - corners).unsqueeze(-2)
