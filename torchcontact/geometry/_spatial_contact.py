@@ -21,12 +21,19 @@ Contacts per pair (either order; receiver first below):
   capsule's radius on its axis with the box, exact while the axis stays outside the box; when it
   enters, the depth is that of the deepest axis point (less than the capsule's penetration);
 - box–box (8): the separating-axis test over the 15 axes (the 6 face normals, the 9 edge
-  cross products; a face axis is preferred unless an edge axis is shallower by more than a
-  tolerance); on a face axis, the incident face of the other box (the face most anti-parallel
-  to the reference face) is clipped to the reference face: the clipped polygon's vertices (at
-  most 8: incident corners over the reference face, reference corners under the incident face,
-  crossings of their edges) are the slots, at their depth below the reference face; on an edge
-  axis, one slot at the closest points of the two edges [Ericson 2005, §4.4 and §5.1.9].
+  cross products), choosing B's face normals, then A's, then edge axes, the first whose overlap
+  is within :data:`FACE_PREFERENCE` of the least (so that boxes resting on each other keep a
+  face manifold); on a face axis, the incident face of the other box (the face most
+  anti-parallel to the reference face) is clipped to the reference face: the clipped
+  polygon's vertices (at most 8: incident corners over the reference face, reference corners
+  under the incident face, crossings of their edges) are the slots, at their depth below the
+  reference face; on an edge axis, one slot at the closest points of the two edges
+  [Ericson 2005, §4.4 and §5.1.9]. The depth is exact for penetrating boxes up to that
+  preference (at most ``FACE_PREFERENCE`` times deeper than the least penetration). For
+  separated boxes a gap is the clipped point's height over the reference face, which is the
+  boxes' distance only where their closest features are over the reference face (a face
+  approaching a face, edge or corner); where two edges or corners approach each other askew,
+  it can exceed the distance, and a slot then becomes a candidate later than ``margin`` says.
 
 Ericson, C. *Real-Time Collision Detection*. Morgan Kaufmann, 2005.
 """
@@ -76,7 +83,7 @@ class _Block:
         second: ``(G,)`` long shape indices of the kernel's other shape.
         first_params: ``(G, P)`` the first shapes' parameters (see :func:`_params`).
         second_params: ``(G, Q)`` the second shapes' parameters.
-        flipped: ``(G, 1)`` bool: the group's receiver is the kernel's other shape.
+        flipped: the groups' receivers are the kernel's other shapes.
     """
 
     kind: tuple[str, str]
@@ -84,7 +91,7 @@ class _Block:
     second: Tensor
     first_params: Tensor
     second_params: Tensor
-    flipped: Tensor
+    flipped: bool
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,7 +101,7 @@ class SpatialSlotTable:
     Attributes:
         blocks: the groups of each pair type present (internal layout).
         slot_order: ``(S,)`` long: for each slot in group order, its index among the blocks'
-            slots laid end to end.
+            slots laid end to end (``None`` when the two orders agree).
         slot_group: ``(S,)`` long: each slot's group index.
         slot_receiver: ``(S,)`` long: shape index of each slot's receiver.
         slot_other: ``(S,)`` long: shape index of each slot's other shape.
@@ -103,7 +110,7 @@ class SpatialSlotTable:
     """
 
     blocks: tuple[_Block, ...]
-    slot_order: Tensor
+    slot_order: Tensor | None
     slot_group: Tensor
     slot_receiver: Tensor
     slot_other: Tensor
@@ -113,7 +120,7 @@ class SpatialSlotTable:
     @property
     def num_slots(self) -> int:
         """``S``, the number of slots."""
-        return self.slot_order.shape[0]
+        return self.slot_group.shape[0]
 
     def to(
         self, *, dtype: torch.dtype, device: torch.device | str | None = None
@@ -168,7 +175,7 @@ def spatial_slot_table(
     if not shapes or not all(isinstance(s, kinds) for s in shapes):
         raise ValueError("shapes must be a non-empty sequence of Box, Sphere, Capsule, HalfSpace")
     names = [type(s).__name__ for s in shapes]
-    members: dict[tuple[str, str], list[tuple[int, int, int, bool]]] = {}
+    members: dict[tuple[tuple[str, str], bool], list[tuple[int, int, int]]] = {}
     counts: list[int] = []
     for g, pair in enumerate(groups):
         valid = (
@@ -193,7 +200,7 @@ def spatial_slot_table(
                 f"(group {g}: {pair!r}); supported pairs: {sorted(SPATIAL_SLOT_COUNTS)}"
             )
         first, second = (other, receiver) if flipped else (receiver, other)
-        members.setdefault(kind, []).append((g, first, second, flipped))
+        members.setdefault((kind, flipped), []).append((g, first, second))
         counts.append(SPATIAL_SLOT_COUNTS[kind])
     if not isinstance(margin, (int, float)) or not margin >= 0 or margin == float("inf"):
         raise ValueError(f"margin must be a finite real >= 0, got {margin!r}")
@@ -202,7 +209,7 @@ def spatial_slot_table(
     starts = [0, *itertools.accumulate(counts)]
     blocks: list[_Block] = []
     order: list[int] = []  # the group-order slot index of each block slot
-    for kind, entries in members.items():
+    for (kind, flipped), entries in members.items():
         count = SPATIAL_SLOT_COUNTS[kind]
         blocks.append(
             _Block(
@@ -211,12 +218,14 @@ def spatial_slot_table(
                 second=torch.tensor([e[2] for e in entries], dtype=long),
                 first_params=torch.tensor([_params(shapes[e[1]]) for e in entries], dtype=f64),
                 second_params=torch.tensor([_params(shapes[e[2]]) for e in entries], dtype=f64),
-                flipped=torch.tensor([[e[3]] for e in entries], dtype=torch.bool),
+                flipped=flipped,
             )
         )
         order.extend(starts[e[0]] + k for e in entries for k in range(count))
-    slot_order = torch.empty(len(order), dtype=long)
-    slot_order[torch.tensor(order, dtype=long)] = torch.arange(len(order), dtype=long)
+    slot_order: Tensor | None = None
+    if order != sorted(order):
+        slot_order = torch.empty(len(order), dtype=long)
+        slot_order[torch.tensor(order, dtype=long)] = torch.arange(len(order), dtype=long)
     slot_group = torch.repeat_interleave(
         torch.arange(len(groups)), torch.tensor(counts, dtype=long)
     )
@@ -276,22 +285,23 @@ def spatial_slots(table: SpatialSlotTable, poses: Tensor) -> SlotGeometry:
             rotation.index_select(-3, block.second),
             block.second_params,
         )
-        # A flipped group's receiver is the kernel's other shape: its witness, reversed normal.
-        flipped = block.flipped.unsqueeze(-1)
-        points = torch.where(flipped, points - phi.unsqueeze(-1) * normals, points)
-        normals = torch.where(flipped, -normals, normals)
+        if block.flipped:  # the receiver is the kernel's other shape: its witness, reversed
+            points, normals = points - phi.unsqueeze(-1) * normals, -normals
         points_parts.append(points.flatten(-3, -2))
         normal_parts.append(normals.flatten(-3, -2))
         phi_parts.append(phi.flatten(-2))
         valid_parts.append(valid.flatten(-2))
-    order = table.slot_order
-    phi = torch.cat(phi_parts, -1).index_select(-1, order)
+    points, normals = _in_order(points_parts, -2, table), _in_order(normal_parts, -2, table)
+    phi, valid = _in_order(phi_parts, -1, table), _in_order(valid_parts, -1, table)
     return SlotGeometry(
-        points=torch.cat(points_parts, -2).index_select(-2, order),
-        normals=torch.cat(normal_parts, -2).index_select(-2, order),
-        phi=phi,
-        active=torch.cat(valid_parts, -1).index_select(-1, order) & (phi <= table.margin),
+        points=points, normals=normals, phi=phi, active=valid & (phi <= table.margin)
     )
+
+
+def _in_order(parts: list[Tensor], dim: int, table: SpatialSlotTable) -> Tensor:
+    """The blocks' slot values laid end to end along ``dim``, in group order."""
+    joined = parts[0] if len(parts) == 1 else torch.cat(parts, dim)
+    return joined if table.slot_order is None else joined.index_select(dim, table.slot_order)
 
 
 def slot_witness_points(slots: SlotGeometry) -> tuple[Tensor, Tensor]:
@@ -333,7 +343,36 @@ def _safe_divide(numerator: Tensor, denominator: Tensor, fallback: float) -> Ten
 
 def _to_world(rotation: Tensor, position: Tensor, local: Tensor) -> Tensor:
     """``(*B, G, K, 3)`` world points ``R p + t`` of body points ``local`` ``(..., K, 3)``."""
-    return local @ rotation.mT + position.unsqueeze(-2)
+    return _rotate(rotation, local) + position.unsqueeze(-2)
+
+
+def _rotate(rotation: Tensor, vectors: Tensor) -> Tensor:
+    """``R v`` for vectors ``(..., K, 3)`` and rotations ``(..., 3, 3)``, elementwise (CPU
+    batched GEMM runs one small kernel per matrix)."""
+    columns = rotation.unsqueeze(-3)
+    turned = torch.addcmul(vectors[..., :1] * columns[..., 0], vectors[..., 1:2], columns[..., 1])
+    return torch.addcmul(turned, vectors[..., 2:], columns[..., 2])
+
+
+def _unrotate(rotation: Tensor, vectors: Tensor) -> Tensor:
+    """``Rᵀ v`` for vectors ``(..., K, 3)`` and rotations ``(..., 3, 3)``, elementwise."""
+    columns = rotation.unsqueeze(-3)
+    return torch.stack([_dot3(vectors, columns[..., j]) for j in range(3)], -1)
+
+
+def _dot3(a: Tensor, b: Tensor) -> Tensor:
+    """Dot products over a last dimension of 3, component by component (on the CPU, several
+    times faster than a reduction over so short a dimension)."""
+    return torch.addcmul(
+        torch.addcmul(a[..., 0] * b[..., 0], a[..., 1], b[..., 1]), a[..., 2], b[..., 2]
+    )
+
+
+def _norm3(a: Tensor) -> Tensor:
+    """Euclidean norms over a last dimension of 3 (gradient 0 at 0, as ``vector_norm``'s)."""
+    square = _dot3(a, a)
+    positive = square > 0
+    return torch.where(positive, torch.sqrt(torch.where(positive, square, 1.0)), 0.0)
 
 
 def _points_vs_plane(
@@ -342,15 +381,15 @@ def _points_vs_plane(
     """Balls of centres ``(*B, G, K, 3)`` and radius ``(G, 1)`` against planes through
     ``point`` with normal ``normal`` (``(*B, G, 3)``, world)."""
     normal = normal.unsqueeze(-2).expand_as(centres)
-    distance = ((centres - point.unsqueeze(-2)) * normal).sum(-1) - radius
+    distance = _dot3(centres - point.unsqueeze(-2), normal) - radius
     points = centres - radius.unsqueeze(-1) * normal
     return points, normal, distance, torch.ones_like(distance, dtype=torch.bool)
 
 
 def _half_space_world(rotation: Tensor, position: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
     """World ``(normal, point)`` ``(*B, G, 3)`` of half-spaces with body parameters ``(G, 6)``."""
-    normal = (rotation @ params[:, 3:].unsqueeze(-1)).squeeze(-1)
-    point = (rotation @ params[:, :3].unsqueeze(-1)).squeeze(-1) + position
+    normal = _rotate(rotation, params[:, None, 3:]).squeeze(-2)
+    point = _rotate(rotation, params[:, None, :3]).squeeze(-2) + position
     return normal, point
 
 
@@ -411,7 +450,7 @@ def _capsule_half_space(
 def _box_distance(local: Tensor, half: Tensor) -> Tensor:
     """Signed distance ``(..., K)`` of box-frame points ``(..., K, 3)`` to boxes ``(G, 1, 3)``."""
     excess = local.abs() - half
-    outside: Tensor = torch.linalg.vector_norm(excess.clamp(min=0.0), dim=-1)
+    outside = _norm3(excess.clamp(min=0.0))
     return outside + excess.amax(-1).clamp(max=0.0)
 
 
@@ -425,7 +464,7 @@ def _balls_vs_box(local: Tensor, radius: Tensor, half: Tensor) -> tuple[Tensor, 
     half = half.unsqueeze(-2)
     closest = torch.maximum(torch.minimum(local, half), -half)
     offset = local - closest
-    square = (offset * offset).sum(-1, keepdim=True)
+    square = _dot3(offset, offset).unsqueeze(-1)
     outside = (local.abs() > half).any(-1, keepdim=True)
     distance = torch.sqrt(torch.where(outside, square, torch.ones_like(square)))
     depth = half - local.abs()
@@ -445,10 +484,10 @@ def _sphere_box(
     half: Tensor,
 ) -> tuple[Tensor, ...]:
     del rotation
-    local = (position - box_position).unsqueeze(-2) @ box_rotation  # (*B, G, 1, 3)
+    local = _unrotate(box_rotation, (position - box_position).unsqueeze(-2))  # (*B, G, 1, 3)
     radius = sphere[:, :1]
     normal_local, gap = _balls_vs_box(local, radius, half)
-    normal = normal_local @ box_rotation.mT
+    normal = _rotate(box_rotation, normal_local)
     points = position.unsqueeze(-2) - radius.unsqueeze(-1) * normal
     return points, normal, gap, torch.ones_like(gap, dtype=torch.bool)
 
@@ -509,8 +548,8 @@ def _capsule_box(
     half: Tensor,
 ) -> tuple[Tensor, ...]:
     radius, length = capsule[:, :1], capsule[:, 1:2]
-    centre = ((position - box_position).unsqueeze(-2) @ box_rotation).squeeze(-2)
-    axis = (rotation[..., :, 2].unsqueeze(-2) @ box_rotation).squeeze(-2)
+    centre = _unrotate(box_rotation, (position - box_position).unsqueeze(-2)).squeeze(-2)
+    axis = _unrotate(box_rotation, rotation[..., None, :, 2]).squeeze(-2)
     start, direction = centre - length * axis, 2 * length * axis  # box frame, (*B, G, 3)
     candidates = _stationary_parameters(start, direction, half)
     along = start.unsqueeze(-2) + candidates.unsqueeze(-1) * direction.unsqueeze(-2)
@@ -538,7 +577,7 @@ def _capsule_box(
     parameters = torch.cat([closest, ends], -1)  # (*B, G, 3)
     local = start.unsqueeze(-2) + parameters.unsqueeze(-1) * direction.unsqueeze(-2)
     normal_local, gap = _balls_vs_box(local, radius, half)
-    normal = normal_local @ box_rotation.mT
+    normal = _rotate(box_rotation, normal_local)
     centres = _to_world(box_rotation, box_position, local)
     points = centres - radius.unsqueeze(-1) * normal
     # Redundant slots: the closest point where an end is as deep (the gap is convex along the
@@ -581,13 +620,13 @@ def _box_box(
     axes_a, axes_b = rotation.mT, other_rotation.mT  # rows: the boxes' axes
     edges = torch.linalg.cross(axes_a.unsqueeze(-2), axes_b.unsqueeze(-3)).flatten(-3, -2)
     axes = torch.cat([axes_a, axes_b, edges], -2)  # (*B, G, 15, 3)
-    length = torch.linalg.vector_norm(axes, dim=-1)
+    length = _norm3(axes)
     usable = length > torch.finfo(dtype).eps ** 0.5
     unit = axes / torch.where(usable, length, torch.ones_like(length)).unsqueeze(-1)
-    reach = ((unit @ rotation).abs() * half_a.unsqueeze(-2)).sum(-1) + (
-        (unit @ other_rotation).abs() * half_b.unsqueeze(-2)
-    ).sum(-1)
-    overlap = reach - (unit * offset.unsqueeze(-2)).sum(-1).abs()
+    reach = _dot3(_unrotate(rotation, unit).abs(), half_a.unsqueeze(-2)) + _dot3(
+        _unrotate(other_rotation, unit).abs(), half_b.unsqueeze(-2)
+    )
+    overlap = reach - _dot3(unit, offset.unsqueeze(-2)).abs()
     overlap = torch.where(usable, overlap, torch.inf)
     # Prefer B's faces (A's corners become the slots), then A's, then edges: the first
     # whose overlap is within FACE_PREFERENCE of the least.
@@ -631,8 +670,8 @@ def _face_contact(
     r_inc = torch.where(flag2, box_b[1], box_a[1])
     h_inc = torch.where(flag, box_b[2], box_a[2])
     column = _column(r_ref, ref_axis)
-    n_ref = column * _sign(((t_inc - t_ref) * column).sum(-1, keepdim=True))
-    alignment = (n_ref.unsqueeze(-2) @ r_inc).squeeze(-2)  # (*B, G, 3)
+    n_ref = column * _sign(_dot3(t_inc - t_ref, column)).unsqueeze(-1)
+    alignment = _unrotate(r_inc, n_ref.unsqueeze(-2)).squeeze(-2)  # (*B, G, 3)
     inc_axis = alignment.abs().argmax(-1)
     n_inc = -_column(r_inc, inc_axis) * _sign(_pick(alignment, inc_axis)).unsqueeze(-1)
     f_ref = t_ref + _pick(h_ref, ref_axis).unsqueeze(-1) * n_ref
@@ -650,9 +689,9 @@ def _face_contact(
         f_inc.unsqueeze(-2) + cycle[:, :1] * w1.unsqueeze(-2) + cycle[:, 1:] * w2.unsqueeze(-2)
     )  # (*B, G, 4, 3), a cycle around the incident face
     relative = corners - f_ref.unsqueeze(-2)
-    u = (relative * u1.unsqueeze(-2)).sum(-1)
-    v = (relative * u2.unsqueeze(-2)).sum(-1)
-    depth = (relative * n_ref.unsqueeze(-2)).sum(-1)  # (*B, G, 4)
+    u = _dot3(relative, u1.unsqueeze(-2))
+    v = _dot3(relative, u2.unsqueeze(-2))
+    depth = _dot3(relative, n_ref.unsqueeze(-2))  # (*B, G, 4)
     tol = tolerance.unsqueeze(-1)  # (G, 1)
 
     # 1. incident corners over the reference face.
@@ -665,16 +704,16 @@ def _face_contact(
     ref_2d = torch.stack([cycle[:, 0] * a, cycle[:, 1] * b], -1)  # (*B, G, 4, 2)
     to_ref = ref_2d.unsqueeze(-2) - quad.unsqueeze(-3)  # (*B, G, 4 ref, 4 inc, 2)
     inward = _cross2(side.unsqueeze(-3), to_ref) * _sign(area).unsqueeze(-1)
-    inward = inward / torch.linalg.vector_norm(side, dim=-1).unsqueeze(-2)
-    apart = torch.linalg.vector_norm(to_ref, dim=-1) > tol.unsqueeze(-1)
+    inward = inward / torch.hypot(side[..., 0], side[..., 1]).unsqueeze(-2)
+    apart = torch.hypot(to_ref[..., 0], to_ref[..., 1]) > tol.unsqueeze(-1)
     ref_valid = ((inward >= -tol.unsqueeze(-1)) & apart).all(-1)
     on_ref = (
         f_ref.unsqueeze(-2)
         + ref_2d[..., :1] * u1.unsqueeze(-2)
         + ref_2d[..., 1:] * u2.unsqueeze(-2)
     )
-    lift = ((f_inc.unsqueeze(-2) - on_ref) * n_inc.unsqueeze(-2)).sum(-1) / (
-        (n_ref * n_inc).sum(-1, keepdim=True)
+    lift = _dot3(f_inc.unsqueeze(-2) - on_ref, n_inc.unsqueeze(-2)) / _dot3(n_ref, n_inc).unsqueeze(
+        -1
     )
     ref_points = on_ref + lift.unsqueeze(-1) * n_ref.unsqueeze(-2)
 
@@ -718,20 +757,21 @@ def _edge_contact(edge_axis: Tensor, unit: Tensor, box_a: _Box, box_b: _Box) -> 
     axis = unit.gather(-2, (6 + edge_axis)[..., None, None].expand(*edge_axis.shape, 1, 3)).squeeze(
         -2
     )
-    normal = axis * _sign(((t_a - t_b) * axis).sum(-1, keepdim=True))  # from B into A
+    normal = axis * _sign(_dot3(t_a - t_b, axis)).unsqueeze(-1)  # from B into A
     i, j = edge_axis // 3, edge_axis % 3
     along_a, along_b = _column(r_a, i), _column(r_b, j)
     # The edges: A's farthest along −n, B's farthest along +n (their axis terms dropped).
     keep_a = torch.ones_like(h_a).scatter(-1, i.unsqueeze(-1), 0.0)
     keep_b = torch.ones_like(h_b).scatter(-1, j.unsqueeze(-1), 0.0)
-    toward_a = (normal.unsqueeze(-2) @ r_a).squeeze(-2)
-    toward_b = (normal.unsqueeze(-2) @ r_b).squeeze(-2)
-    centre_a = t_a + ((-_sign(toward_a) * h_a * keep_a).unsqueeze(-2) @ r_a.mT).squeeze(-2)
-    centre_b = t_b + ((_sign(toward_b) * h_b * keep_b).unsqueeze(-2) @ r_b.mT).squeeze(-2)
+    toward_a = _unrotate(r_a, normal.unsqueeze(-2)).squeeze(-2)
+    toward_b = _unrotate(r_b, normal.unsqueeze(-2)).squeeze(-2)
+    centre_a = t_a + _rotate(r_a, (-_sign(toward_a) * h_a * keep_a).unsqueeze(-2)).squeeze(-2)
+    centre_b = t_b + _rotate(r_b, (_sign(toward_b) * h_b * keep_b).unsqueeze(-2)).squeeze(-2)
     reach_a, reach_b = _pick(h_a, i).unsqueeze(-1), _pick(h_b, j).unsqueeze(-1)
     between = centre_a - centre_b
-    cosine = (along_a * along_b).sum(-1, keepdim=True)
-    d_a, d_b = (along_a * between).sum(-1, keepdim=True), (along_b * between).sum(-1, keepdim=True)
+    cosine = _dot3(along_a, along_b).unsqueeze(-1)
+    d_a = _dot3(along_a, between).unsqueeze(-1)
+    d_b = _dot3(along_b, between).unsqueeze(-1)
     sine2 = 1 - cosine * cosine
     s_a = torch.minimum(
         torch.maximum(_safe_divide(cosine * d_b - d_a, sine2, 0.0), -reach_a), reach_a
@@ -740,7 +780,7 @@ def _edge_contact(edge_axis: Tensor, unit: Tensor, box_a: _Box, box_b: _Box) -> 
     s_a = torch.minimum(torch.maximum(cosine * s_b - d_a, -reach_a), reach_a)
     point_a = centre_a + s_a * along_a
     point_b = centre_b + s_b * along_b
-    gap = ((point_a - point_b) * normal).sum(-1, keepdim=True)
+    gap = _dot3(point_a - point_b, normal).unsqueeze(-1)
     points = torch.cat(
         [point_a.unsqueeze(-2), point_a.unsqueeze(-2).expand(*point_a.shape[:-1], 7, 3)], -2
     )
