@@ -50,8 +50,16 @@ from torch import Tensor
 
 from torchcontact._checks import check_float, check_unit_rows
 from torchcontact.geometry._quaternion import quat_to_matrix
+from torchcontact.geometry._se2 import cross2
 from torchcontact.geometry._slots import TIE_TOLERANCE, SlotGeometry
-from torchcontact.geometry._spatial_shapes import Box, Capsule, HalfSpace, SpatialShape, Sphere
+from torchcontact.geometry._spatial_shapes import (
+    Box,
+    Capsule,
+    HalfSpace,
+    SpatialShape,
+    Sphere,
+    corner_signs,
+)
 
 #: Slots per pair of shape types, receiving shape first (either order gives the same count).
 SPATIAL_SLOT_COUNTS: dict[tuple[str, str], int] = {
@@ -395,10 +403,7 @@ def _half_space_world(rotation: Tensor, position: Tensor, params: Tensor) -> tup
 
 def _box_corners(half: Tensor) -> Tensor:
     """``(G, 8, 3)`` body corners of boxes of half extents ``(G, 3)``, x fastest."""
-    signs = torch.tensor(
-        list(itertools.product((-1.0, 1.0), repeat=3)), dtype=half.dtype, device=half.device
-    ).flip(-1)
-    return signs * half.unsqueeze(-2)
+    return corner_signs(half.dtype, half.device) * half.unsqueeze(-2)
 
 
 def _box_half_space(
@@ -409,6 +414,7 @@ def _box_half_space(
     plane_rotation: Tensor,
     plane: Tensor,
 ) -> tuple[Tensor, ...]:
+    """Box corners (8) against a half-space."""
     corners = _to_world(rotation, position, _box_corners(half))
     normal, point = _half_space_world(plane_rotation, plane_position, plane)
     return _points_vs_plane(corners, torch.zeros_like(half[:, :1]), normal, point)
@@ -422,6 +428,7 @@ def _sphere_half_space(
     plane_rotation: Tensor,
     plane: Tensor,
 ) -> tuple[Tensor, ...]:
+    """A sphere (1) against a half-space."""
     del rotation
     normal, point = _half_space_world(plane_rotation, plane_position, plane)
     return _points_vs_plane(position.unsqueeze(-2), sphere[:, :1], normal, point)
@@ -441,6 +448,7 @@ def _capsule_half_space(
     plane_rotation: Tensor,
     plane: Tensor,
 ) -> tuple[Tensor, ...]:
+    """A capsule's end balls (2) against a half-space."""
     normal, point = _half_space_world(plane_rotation, plane_position, plane)
     return _points_vs_plane(
         _capsule_ends(position, rotation, capsule), capsule[:, :1], normal, point
@@ -483,6 +491,7 @@ def _sphere_box(
     box_rotation: Tensor,
     half: Tensor,
 ) -> tuple[Tensor, ...]:
+    """A sphere (1) against a box."""
     del rotation
     local = _unrotate(box_rotation, (position - box_position).unsqueeze(-2))  # (*B, G, 1, 3)
     radius = sphere[:, :1]
@@ -547,6 +556,8 @@ def _capsule_box(
     box_rotation: Tensor,
     half: Tensor,
 ) -> tuple[Tensor, ...]:
+    """A capsule (3: the closest axis point, the ends of the axis over the face) against a
+    box."""
     radius, length = capsule[:, :1], capsule[:, 1:2]
     centre = _unrotate(box_rotation, (position - box_position).unsqueeze(-2)).squeeze(-2)
     axis = _unrotate(box_rotation, rotation[..., None, :, 2]).squeeze(-2)
@@ -600,10 +611,6 @@ def _pick(values: Tensor, index: Tensor) -> Tensor:
     return values.gather(-1, index.unsqueeze(-1)).squeeze(-1)
 
 
-def _cross2(a: Tensor, b: Tensor) -> Tensor:
-    return a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
-
-
 def _box_box(
     position: Tensor,
     rotation: Tensor,
@@ -612,6 +619,7 @@ def _box_box(
     other_rotation: Tensor,
     other_half: Tensor,
 ) -> tuple[Tensor, ...]:
+    """A box (8: the clipped face, or one edge point) against a box."""
     dtype = position.dtype
     half_a = half.expand(*position.shape[:-1], 3)
     half_b = other_half.expand(*position.shape[:-1], 3)
@@ -700,10 +708,10 @@ def _face_contact(
     # 2. reference corners under the incident face (and not at one of its corners).
     quad = torch.stack([u, v], -1)  # (*B, G, 4, 2)
     side = quad.roll(-1, dims=-2) - quad
-    area = _cross2(quad, quad.roll(-1, dims=-2)).sum(-1, keepdim=True)
+    area = cross2(quad, quad.roll(-1, dims=-2)).sum(-1, keepdim=True)
     ref_2d = torch.stack([cycle[:, 0] * a, cycle[:, 1] * b], -1)  # (*B, G, 4, 2)
     to_ref = ref_2d.unsqueeze(-2) - quad.unsqueeze(-3)  # (*B, G, 4 ref, 4 inc, 2)
-    inward = _cross2(side.unsqueeze(-3), to_ref) * _sign(area).unsqueeze(-1)
+    inward = cross2(side.unsqueeze(-3), to_ref) * _sign(area).unsqueeze(-1)
     inward = inward / torch.hypot(side[..., 0], side[..., 1]).unsqueeze(-2)
     apart = torch.hypot(to_ref[..., 0], to_ref[..., 1]) > tol.unsqueeze(-1)
     ref_valid = ((inward >= -tol.unsqueeze(-1)) & apart).all(-1)

@@ -46,6 +46,12 @@ def _mass_properties(
     return mass, mass * unit_inertia
 
 
+def corner_signs(dtype: torch.dtype, device: torch.device | str | None = None) -> Tensor:
+    """``(8, 3)`` the signs ``(±1, ±1, ±1)`` of a box's corners, x fastest."""
+    signs = [[sx, sy, sz] for sz in (-1.0, 1.0) for sy in (-1.0, 1.0) for sx in (-1.0, 1.0)]
+    return torch.tensor(signs, dtype=dtype, device=device)
+
+
 @dataclass(frozen=True, eq=False)
 class Box:
     """A box centred on its body frame's origin, edges along the frame's axes.
@@ -93,11 +99,7 @@ class Box:
 
     def corners(self) -> Tensor:
         """``(8, 3)`` float64 corners in the body frame, ``(±a, ±b, ±c)`` with x fastest."""
-        signs = torch.tensor(
-            [[sx, sy, sz] for sz in (-1, 1) for sy in (-1, 1) for sx in (-1, 1)],
-            dtype=torch.float64,
-        )
-        return signs * self.half_extents
+        return corner_signs(torch.float64, self.half_extents.device) * self.half_extents
 
 
 @dataclass(frozen=True, eq=False)
