@@ -129,8 +129,8 @@ def _compare_with_coal(
 ) -> int:
     rng = np.random.default_rng(7)
     poses = np.stack([_random_poses(rng, count, spread), _identity(count)], 1)
-    if not isinstance(other, HalfSpace):  # a half-space stays at the identity pose
-        poses[:, 1] = _random_poses(rng, count, 0.0)  # rotated, at the origin
+    # The other shape turned about the origin (a half-space: its point and normal).
+    poses[:, 1] = _random_poses(rng, count, 0.0)
     table = spatial_slot_table([receiver, other], [(0, 1)], margin=100.0)
     slots = spatial_slots(table, torch.tensor(poses, dtype=dtype))
     on_receiver, on_other = (p.double().numpy() for p in slot_witness_points(slots))
