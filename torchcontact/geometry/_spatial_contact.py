@@ -30,10 +30,10 @@ Contacts per pair (either order; receiver first below):
   reference face; on an edge axis, one slot at the closest points of the two edges
   [Ericson 2005, §4.4 and §5.1.9]. The depth is exact for penetrating boxes up to that
   preference (at most ``FACE_PREFERENCE`` times deeper than the least penetration). For
-  separated boxes a gap is the clipped point's height over the reference face, which is the
-  boxes' distance only where their closest features are over the reference face (a face
-  approaching a face, edge or corner); where two edges or corners approach each other askew,
-  it can exceed the distance, and a slot then becomes a candidate later than ``margin`` says.
+  separated boxes the face manifold's gaps are never less than the boxes' distance; where none
+  reaches it (two edges or corners approaching askew), or on an edge axis, the slots are one
+  slot at the exact closest points instead (the nearest of the 16 corners against the other
+  box and the 144 edge pairs), so the least gap is the distance.
 
 Ericson, C. *Real-Time Collision Detection*. Morgan Kaufmann, 2005.
 """
@@ -624,6 +624,7 @@ def _box_box(
     half_a = half.expand(*position.shape[:-1], 3)
     half_b = other_half.expand(*position.shape[:-1], 3)
     tolerance = _tolerance(dtype, torch.maximum(half.amax(-1), other_half.amax(-1)))  # (G,)
+    tol = tolerance.unsqueeze(-1)
     offset = position - other_position  # from B to A
     axes_a, axes_b = rotation.mT, other_rotation.mT  # rows: the boxes' axes
     edges = torch.linalg.cross(axes_a.unsqueeze(-2), axes_b.unsqueeze(-3)).flatten(-3, -2)
@@ -656,9 +657,25 @@ def _box_box(
     edge = _edge_contact(
         edge_axis, unit, (position, rotation, half_a), (other_position, other_rotation, half_b)
     )
-    return tuple(
+    chosen = [
         torch.where(is_edge.view(*is_edge.shape, *([1] * (f.dim() - is_edge.dim()))), e, f)
         for f, e in zip(face, edge, strict=True)
+    ]
+    # Separated boxes: the exact closest pair, one slot, unless the face manifold reaches it
+    # (its gaps are never less than the distance).
+    point_a, point_b, distance = _closest_pair(
+        (position, rotation, half_a), (other_position, other_rotation, half_b)
+    )
+    points, normals, gaps, valid = chosen
+    reached = torch.where(valid, gaps, torch.inf).amin(-1, keepdim=True) <= distance + tol
+    exact = ((least < -tolerance).unsqueeze(-1) & (is_edge.unsqueeze(-1) | ~reached)).unsqueeze(-1)
+    direction = _safe_divide(point_a - point_b, distance, 0.0)
+    first = torch.arange(8, device=gaps.device) == 0
+    return (
+        torch.where(exact, point_a.unsqueeze(-2), points),
+        torch.where(exact, direction.unsqueeze(-2), normals),
+        torch.where(exact.squeeze(-1), distance, gaps),
+        torch.where(exact.squeeze(-1), first, valid),
     )
 
 
@@ -776,18 +793,9 @@ def _edge_contact(edge_axis: Tensor, unit: Tensor, box_a: _Box, box_b: _Box) -> 
     centre_a = t_a + _rotate(r_a, (-_sign(toward_a) * h_a * keep_a).unsqueeze(-2)).squeeze(-2)
     centre_b = t_b + _rotate(r_b, (_sign(toward_b) * h_b * keep_b).unsqueeze(-2)).squeeze(-2)
     reach_a, reach_b = _pick(h_a, i).unsqueeze(-1), _pick(h_b, j).unsqueeze(-1)
-    between = centre_a - centre_b
-    cosine = _dot3(along_a, along_b).unsqueeze(-1)
-    d_a = _dot3(along_a, between).unsqueeze(-1)
-    d_b = _dot3(along_b, between).unsqueeze(-1)
-    sine2 = 1 - cosine * cosine
-    s_a = torch.minimum(
-        torch.maximum(_safe_divide(cosine * d_b - d_a, sine2, 0.0), -reach_a), reach_a
+    point_a, point_b = _closest_on_segments(
+        (centre_a, along_a, reach_a), (centre_b, along_b, reach_b)
     )
-    s_b = torch.minimum(torch.maximum(d_b + cosine * s_a, -reach_b), reach_b)
-    s_a = torch.minimum(torch.maximum(cosine * s_b - d_a, -reach_a), reach_a)
-    point_a = centre_a + s_a * along_a
-    point_b = centre_b + s_b * along_b
     gap = _dot3(point_a - point_b, normal).unsqueeze(-1)
     points = torch.cat(
         [point_a.unsqueeze(-2), point_a.unsqueeze(-2).expand(*point_a.shape[:-1], 7, 3)], -2
@@ -797,6 +805,126 @@ def _edge_contact(edge_axis: Tensor, unit: Tensor, box_a: _Box, box_b: _Box) -> 
     valid = torch.zeros_like(gaps, dtype=torch.bool)
     valid[..., 0] = True
     return points, normals, gaps, valid
+
+
+_Segment = tuple[Tensor, Tensor, Tensor]
+
+
+def _closest_on_segments(segment_a: _Segment, segment_b: _Segment) -> tuple[Tensor, Tensor]:
+    """Closest points ``(..., 3)`` of segments ``c + s u``, ``|s| <= h`` (centre ``c``
+    ``(..., 3)``, unit direction ``u`` ``(..., 3)``, half length ``h`` ``(..., 1)``).
+
+    The lines' closest parameters, clamped to one segment, then the other's parameter for it,
+    clamped, then the first's again [Ericson 2005, §5.1.9] (parallel segments: from ``s = 0``).
+    """
+    centre_a, along_a, reach_a = segment_a
+    centre_b, along_b, reach_b = segment_b
+    between = centre_a - centre_b
+    cosine = _dot3(along_a, along_b).unsqueeze(-1)
+    d_a = _dot3(along_a, between).unsqueeze(-1)
+    d_b = _dot3(along_b, between).unsqueeze(-1)
+    s_a, s_b = _clamped_parameters(cosine, d_a, d_b, reach_a, reach_b)
+    return centre_a + s_a * along_a, centre_b + s_b * along_b
+
+
+def _clamped_parameters(
+    cosine: Tensor, d_a: Tensor, d_b: Tensor, reach_a: Tensor, reach_b: Tensor
+) -> tuple[Tensor, Tensor]:
+    """The closest parameters ``(s_a, s_b)`` of two segments from ``u_a · u_b``,
+    ``u_a · (c_a − c_b)``, ``u_b · (c_a − c_b)`` and the half lengths (broadcast)."""
+    sine2 = 1 - cosine * cosine
+    s_a = torch.minimum(
+        torch.maximum(_safe_divide(cosine * d_b - d_a, sine2, 0.0), -reach_a), reach_a
+    )
+    s_b = torch.minimum(torch.maximum(d_b + cosine * s_a, -reach_b), reach_b)
+    s_a = torch.minimum(torch.maximum(cosine * s_b - d_a, -reach_a), reach_a)
+    return s_a, s_b
+
+
+def _edge_table(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor]:
+    """A box's 12 edges: ``(12, 3)`` the signs of their centres (0 along the edge) and
+    ``(12,)`` long their axes."""
+    rows, axes = [], []
+    for axis in range(3):
+        for first in (-1.0, 1.0):
+            for second in (-1.0, 1.0):
+                row = [0.0, 0.0, 0.0]
+                row[(axis + 1) % 3], row[(axis + 2) % 3] = first, second
+                rows.append(row)
+                axes.append(axis)
+    return (
+        torch.tensor(rows, dtype=dtype, device=device),
+        torch.tensor(axes, dtype=torch.long, device=device),
+    )
+
+
+def _closest_pair(box_a: _Box, box_b: _Box) -> tuple[Tensor, Tensor, Tensor]:
+    """The closest points ``(*B, G, 3)`` of two disjoint boxes and their distance
+    ``(*B, G, 1)``: the nearest of every corner against the other box (its clamp into the
+    other's frame) and every pair of their edges.
+
+    The 144 edge pairs are compared by scalars only: with ``Δ = c_a − c_b``, the clamped
+    parameters (:func:`_closest_on_segments`) need ``u_a · u_b``, ``u_a · Δ`` and ``u_b · Δ``,
+    and the squared distance is ``|Δ|² + s_a² + s_b² + 2 s_a u_a·Δ − 2 s_b u_b·Δ −
+    2 s_a s_b u_a·u_b``, all from one product of the ``(24, 3)`` rows ``[u; c]`` of each box
+    (centres taken from B's centre, so that the squares do not cancel); the nearest pair's
+    points are then computed in space.
+    """
+    t_a, r_a, h_a = box_a
+    t_b, r_b, h_b = box_b
+    signs = corner_signs(h_a.dtype, h_a.device)
+    edge_signs, edge_axes = _edge_table(h_a.dtype, h_a.device)
+    # Corners against the other box.
+    firsts, seconds = [], []
+    for (t_1, r_1, h_1), (t_2, r_2, h_2), flip in ((box_a, box_b, False), (box_b, box_a, True)):
+        corners = _to_world(r_1, t_1, signs * h_1.unsqueeze(-2))  # (*B, G, 8, 3)
+        local = _unrotate(r_2, corners - t_2.unsqueeze(-2))
+        h = h_2.unsqueeze(-2)
+        nearest = _to_world(r_2, t_2, torch.maximum(torch.minimum(local, h), -h))
+        firsts.append(nearest if flip else corners)
+        seconds.append(corners if flip else nearest)
+    first, second = torch.cat(firsts, -2), torch.cat(seconds, -2)  # (*B, G, 16, 3)
+    corner_distance, corner = _norm3(first - second).min(-1, keepdim=True)
+    index = corner.unsqueeze(-1).expand(*corner.shape, 3)
+    corner_a, corner_b = first.gather(-2, index).squeeze(-2), second.gather(-2, index).squeeze(-2)
+    # Edge pairs, by scalars.
+    rows = []
+    for t, r, h in ((t_a, r_a, h_a), (t_b, r_b, h_b)):
+        centres = _to_world(r, t - t_b, edge_signs * h.unsqueeze(-2))  # (*B, G, 12, 3)
+        rows.append(torch.cat([r.index_select(-1, edge_axes).mT, centres], -2))  # (*B, G, 24, 3)
+    products = rows[0] @ rows[1].mT  # (*B, G, 24, 24)
+    cosine, ua_cb = products[..., :12, :12], products[..., :12, 12:]
+    ca_ub, ca_cb = products[..., 12:, :12], products[..., 12:, 12:]
+    ua_ca = _dot3(rows[0][..., :12, :], rows[0][..., 12:, :]).unsqueeze(-1)
+    ub_cb = _dot3(rows[1][..., :12, :], rows[1][..., 12:, :]).unsqueeze(-2)
+    d_a, d_b = ua_ca - ua_cb, ca_ub - ub_cb  # u_a · Δ, u_b · Δ: (*B, G, 12, 12)
+    square = (
+        _dot3(rows[0][..., 12:, :], rows[0][..., 12:, :]).unsqueeze(-1)
+        + _dot3(rows[1][..., 12:, :], rows[1][..., 12:, :]).unsqueeze(-2)
+        - 2 * ca_cb
+    )
+    reach_a = h_a.index_select(-1, edge_axes).unsqueeze(-1)
+    reach_b = h_b.index_select(-1, edge_axes).unsqueeze(-2)
+    s_a, s_b = _clamped_parameters(cosine, d_a, d_b, reach_a, reach_b)
+    square = square + s_a * (s_a + 2 * d_a) + s_b * (s_b - 2 * d_b) - 2 * s_a * s_b * cosine
+    best = square.flatten(-2).argmin(-1, keepdim=True)  # (*B, G, 1)
+    e, f = best // 12, best % 12
+    segments = []
+    for row, t, edge, parameter in (
+        (rows[0], t_b, e, s_a.flatten(-2).gather(-1, best)),
+        (rows[1], t_b, f, s_b.flatten(-2).gather(-1, best)),
+    ):
+        pick = edge.unsqueeze(-1).expand(*edge.shape, 3)
+        along = row[..., :12, :].gather(-2, pick).squeeze(-2)
+        centre = row[..., 12:, :].gather(-2, pick).squeeze(-2) + t
+        segments.append(centre + parameter * along)
+    edge_distance = _norm3(segments[0] - segments[1]).unsqueeze(-1)
+    edges_nearer = edge_distance < corner_distance
+    return (
+        torch.where(edges_nearer, segments[0], corner_a),
+        torch.where(edges_nearer, segments[1], corner_b),
+        torch.minimum(edge_distance, corner_distance),
+    )
 
 
 _KERNELS: dict[tuple[str, str], _Kernel] = {
