@@ -222,7 +222,7 @@ def test_box_box_witness_points_lie_on_both_boxes() -> None:
     rng = np.random.default_rng(5)
     half_a, half_b = np.array([0.2, 0.3, 0.1]), np.array([0.5, 0.4, 0.3])
     poses = np.stack([_random_poses(rng, 300, 0.8), _random_poses(rng, 300, 0.0)], 1)
-    table = spatial_slot_table([Box(half_a), Box(half_b)], [(0, 1)], margin=0.0)
+    table = spatial_slot_table([Box(half_a), Box(half_b)], [(0, 1)], margin=0.05)
     slots = spatial_slots(table, torch.tensor(poses))
     on_a, on_b = (p.numpy() for p in slot_witness_points(slots))
     checked = 0
@@ -478,6 +478,9 @@ def _phi_of(shapes, groups, positions, rotation_vectors):
         # Crossed edges.
         ([Box((0.2, 0.2, 0.2)), Box((0.2, 0.2, 0.2))], [[0.01, 0.02, 0.56], [0.0, 0.0, 0.0]],
          [[0.8, 0.03, 0.0], [0.0, 0.75, 0.02]]),
+        # Separated askew (the exact closest points).
+        ([Box((0.2, 0.3, 0.1)), BOX], [[0.615, 0.5084, 0.4264], [0.0, 0.0, 0.0]],
+         [[0.5, -0.7, 0.3], [0.0, 0.0, 0.2]]),
         ([Capsule(0.1, 0.3), BOX], [[0.2, 0.1, 0.39], [0.0, 0.0, 0.0]],
          [[0.2, 1.3, 0.1], [0.0, 0.0, 0.1]]),
         ([Sphere(0.1), BOX], [[0.5, 0.45, 0.2], [0.0, 0.0, 0.0]],
@@ -491,7 +494,7 @@ def test_gaps_have_the_gradients_of_finite_differences(shapes, positions, rotati
     rotation = torch.tensor(rotations, dtype=torch.float64, requires_grad=True)
     phi, inputs = _phi_of(shapes, [(0, 1)], position, rotation)
     poses = torch.cat([position, quat_exp(rotation)], -1)
-    touching = spatial_slots(spatial_slot_table(shapes, [(0, 1)], margin=0.0), poses).active
+    touching = spatial_slots(spatial_slot_table(shapes, [(0, 1)], margin=0.05), poses).active
     assert bool(touching.any())
     assert torch.autograd.gradcheck(phi, inputs, eps=1e-6, atol=1e-6, rtol=1e-5)
 
