@@ -121,6 +121,16 @@ def test_ground_is_z_up() -> None:
     np.testing.assert_allclose(ground.normal.numpy(), [0.0, 0.0, 1.0])
 
 
+def test_tilted_ground_descends_along_x() -> None:
+    # A 30-degree incline: a point 1 m along +x on the surface lies tan(30°) lower.
+    incline = HalfSpace.ground(0.2, math.radians(30.0))
+    normal, point = incline.normal.numpy(), incline.point.numpy()
+    assert np.linalg.norm(normal) == pytest.approx(1.0, abs=1e-15)
+    on_surface = np.array([1.0, 0.0, 0.2 - math.tan(math.radians(30.0))])
+    assert normal @ (on_surface - point) == pytest.approx(0.0, abs=1e-15)
+    assert normal[2] == pytest.approx(math.cos(math.radians(30.0)), abs=1e-15)
+
+
 @pytest.mark.parametrize(
     ("build", "name"),
     [
@@ -139,6 +149,7 @@ def test_ground_is_z_up() -> None:
         (lambda: HalfSpace((0.0, math.inf, 0.0), (0.0, 0.0, 1.0)), "point"),
         (lambda: HalfSpace((0.0, 0.0, 0.0), (0.0, 1.0)), "normal"),
         (lambda: HalfSpace.ground(math.nan), "height"),
+        (lambda: HalfSpace.ground(0.0, math.inf), "angle"),
     ],
 )
 def test_bad_shapes_raise_value_error_naming_the_argument(build, name: str) -> None:

@@ -223,12 +223,14 @@ class HalfSpace:
         object.__setattr__(self, "normal", normal)
 
     @staticmethod
-    def ground(height: float = 0.0) -> HalfSpace:
-        """The ground ``z ≤ height`` (normal ``+z``)."""
-        height = check_real("height", height)
+    def ground(height: float = 0.0, angle: float = 0.0) -> HalfSpace:
+        """The ground through ``(0, 0, height)``, turned by ``angle`` rad about the y axis:
+        normal ``(sin θ, 0, cos θ)`` (``+z`` at ``angle = 0``), so that for ``angle > 0`` it
+        descends along ``+x`` (an incline of slope ``θ``)."""
+        height, angle = check_real("height", height), check_real("angle", angle)
         return HalfSpace(
             torch.tensor([0.0, 0.0, height], dtype=torch.float64),
-            torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64),
+            torch.tensor([math.sin(angle), 0.0, math.cos(angle)], dtype=torch.float64),
         )
 
 
