@@ -422,6 +422,23 @@ def test_capsule_lying_on_a_box_touches_at_both_ends_of_the_face() -> None:
     np.testing.assert_allclose(slots.phi[slots.active].numpy(), [-0.001, -0.001], atol=1e-12)
 
 
+def test_capsule_on_a_wide_face_touches_at_its_end_balls_and_standing_at_its_tip() -> None:
+    capsule, box = Capsule(0.1, 0.2), BOX
+    c = math.cos(math.pi / 4)
+    poses = torch.tensor(
+        [
+            [[0.1, 0.1, 0.399, c, 0.0, c, 0.0], [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]],  # lying
+            [[0.1, 0.1, 0.599, 1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]],  # up
+        ],
+        dtype=torch.float64,
+    )
+    slots = spatial_slots(spatial_slot_table([capsule, box], [(0, 1)], margin=0.0), poses)
+    lying = slots.points[0][slots.active[0]].numpy()
+    _assert_same_points(lying, np.array([[-0.1, 0.1, 0.299], [0.3, 0.1, 0.299]]), 1e-12)
+    standing = slots.points[1][slots.active[1]].numpy()
+    _assert_same_points(standing, np.array([[0.1, 0.1, 0.299]]), 1e-12)
+
+
 # --- tables, batching, gradients, validation ---------------------------------------------------
 
 
