@@ -125,12 +125,13 @@ def _compare_with_coal(
     count: int,
     length_tol: float,
     normal_tol: float,
+    margin: float = 100.0,
 ) -> int:
     rng = np.random.default_rng(7)
     poses = np.stack([_random_poses(rng, count, spread), _identity(count)], 1)
     # The other shape turned about the origin (a half-space: its point and normal).
     poses[:, 1] = _random_poses(rng, count, 0.0)
-    table = spatial_slot_table([receiver, other], [(0, 1)], margin=100.0)
+    table = spatial_slot_table([receiver, other], [(0, 1)], margin=margin)
     slots = spatial_slots(table, torch.tensor(poses, dtype=dtype))
     on_receiver, on_other = (p.double().numpy() for p in slot_witness_points(slots))
     phi = slots.phi.double().numpy()
@@ -175,6 +176,18 @@ def test_deepest_slot_matches_coal_at_random_poses(pair: str) -> None:
     compared = _compare_with_coal(
         receiver, other, spread, keep, torch.float64, 300, LENGTH_TOL, NORMAL_TOL
     )
+    assert compared >= 40
+
+
+@pytest.mark.parametrize("pair", ["box-box", "cube-cube"])
+def test_boxes_within_the_margin_match_coal(pair: str) -> None:
+    # Only the pairs separated by at most the margin get the exact closest points: the batch
+    # mixes them with penetrating and distant ones.
+    receiver, other, spread, _ = PAIRS[pair]
+    compared = _compare_with_coal(
+        receiver, other, spread, lambda d: d <= 0.05, torch.float64, 300, LENGTH_TOL, NORMAL_TOL,
+        margin=0.05,
+    )  # fmt: skip
     assert compared >= 40
 
 

@@ -31,9 +31,11 @@ Contacts per pair (either order; receiver first below):
   [Ericson 2005, §4.4 and §5.1.9]. The depth is exact for penetrating boxes up to that
   preference (at most ``FACE_PREFERENCE`` times deeper than the least penetration). For
   separated boxes the face manifold's gaps are never less than the boxes' distance; where none
-  reaches it (two edges or corners approaching askew), or on an edge axis, the slots are one
-  slot at the exact closest points instead (the nearest of the 16 corners against the other
-  box and the 144 edge pairs), so the least gap is the distance.
+  reaches it (two edges or corners approaching askew), or on an edge axis, and the boxes are
+  separated by no more than ``margin``, the slots are one slot at the exact closest points
+  instead (the nearest of the 16 corners against the other box and the 144 edge pairs), so the
+  least gap is the distance. Beyond the margin no slot is a candidate and the gaps are only
+  bounds (at least the separation along the chosen axis).
 
 Ericson, C. *Real-Time Collision Detection*. Morgan Kaufmann, 2005.
 """
@@ -78,7 +80,7 @@ SPATIAL_SLOT_COUNTS: dict[tuple[str, str], int] = {
 FACE_PREFERENCE = 0.05
 
 _Item = TypeVar("_Item", "SpatialSlotTable", "_Block")
-_Kernel = Callable[[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor], tuple[Tensor, ...]]
+_Kernel = Callable[[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, float], tuple[Tensor, ...]]
 
 
 @dataclass(frozen=True, eq=False)
@@ -292,6 +294,7 @@ def spatial_slots(table: SpatialSlotTable, poses: Tensor) -> SlotGeometry:
             position.index_select(-2, block.second),
             rotation.index_select(-3, block.second),
             block.second_params,
+            table.margin,
         )
         if block.flipped:  # the receiver is the kernel's other shape: its witness, reversed
             points, normals = points - phi.unsqueeze(-1) * normals, -normals
@@ -413,8 +416,10 @@ def _box_half_space(
     plane_position: Tensor,
     plane_rotation: Tensor,
     plane: Tensor,
+    margin: float,
 ) -> tuple[Tensor, ...]:
     """Box corners (8) against a half-space."""
+    del margin  # every slot is computed
     corners = _to_world(rotation, position, _box_corners(half))
     normal, point = _half_space_world(plane_rotation, plane_position, plane)
     return _points_vs_plane(corners, torch.zeros_like(half[:, :1]), normal, point)
@@ -427,8 +432,10 @@ def _sphere_half_space(
     plane_position: Tensor,
     plane_rotation: Tensor,
     plane: Tensor,
+    margin: float,
 ) -> tuple[Tensor, ...]:
     """A sphere (1) against a half-space."""
+    del margin  # every slot is computed
     del rotation
     normal, point = _half_space_world(plane_rotation, plane_position, plane)
     return _points_vs_plane(position.unsqueeze(-2), sphere[:, :1], normal, point)
@@ -447,8 +454,10 @@ def _capsule_half_space(
     plane_position: Tensor,
     plane_rotation: Tensor,
     plane: Tensor,
+    margin: float,
 ) -> tuple[Tensor, ...]:
     """A capsule's end balls (2) against a half-space."""
+    del margin  # every slot is computed
     normal, point = _half_space_world(plane_rotation, plane_position, plane)
     return _points_vs_plane(
         _capsule_ends(position, rotation, capsule), capsule[:, :1], normal, point
@@ -490,8 +499,10 @@ def _sphere_box(
     box_position: Tensor,
     box_rotation: Tensor,
     half: Tensor,
+    margin: float,
 ) -> tuple[Tensor, ...]:
     """A sphere (1) against a box."""
+    del margin  # every slot is computed
     del rotation
     local = _unrotate(box_rotation, (position - box_position).unsqueeze(-2))  # (*B, G, 1, 3)
     radius = sphere[:, :1]
@@ -555,9 +566,11 @@ def _capsule_box(
     box_position: Tensor,
     box_rotation: Tensor,
     half: Tensor,
+    margin: float,
 ) -> tuple[Tensor, ...]:
     """A capsule (3: the closest axis point, the ends of the axis over the face) against a
     box."""
+    del margin  # every slot is computed
     radius, length = capsule[:, :1], capsule[:, 1:2]
     centre = _unrotate(box_rotation, (position - box_position).unsqueeze(-2)).squeeze(-2)
     axis = _unrotate(box_rotation, rotation[..., None, :, 2]).squeeze(-2)
@@ -618,6 +631,7 @@ def _box_box(
     other_position: Tensor,
     other_rotation: Tensor,
     other_half: Tensor,
+    margin: float,
 ) -> tuple[Tensor, ...]:
     """A box (8: the clipped face, or one edge point) against a box."""
     dtype = position.dtype
@@ -661,21 +675,43 @@ def _box_box(
         torch.where(is_edge.view(*is_edge.shape, *([1] * (f.dim() - is_edge.dim()))), e, f)
         for f, e in zip(face, edge, strict=True)
     ]
-    # Separated boxes: the exact closest pair, one slot, unless the face manifold reaches it
-    # (its gaps are never less than the distance).
-    point_a, point_b, distance = _closest_pair(
-        (position, rotation, half_a), (other_position, other_rotation, half_b)
-    )
     points, normals, gaps, valid = chosen
-    reached = torch.where(valid, gaps, torch.inf).amin(-1, keepdim=True) <= distance + tol
-    exact = ((least < -tolerance).unsqueeze(-1) & (is_edge.unsqueeze(-1) | ~reached)).unsqueeze(-1)
+    # Separated boxes within the margin (beyond it no slot is a candidate, the distance being
+    # at least the separation): the exact closest pair, one slot, on an edge axis or where the
+    # face manifold does not reach it (its gaps are never less than the distance). Only those
+    # pairs are computed (a host synchronization).
+    near = (least < -tolerance) & (least >= -margin)
+    if not bool(near.any()):
+        return points, normals, gaps, valid
+    shape = gaps.shape
+    rows = near.reshape(-1).nonzero().squeeze(-1)
+
+    def pick(value: Tensor) -> Tensor:
+        return value.reshape(-1, *value.shape[len(shape) - 1 :]).index_select(0, rows)
+
+    point_a, point_b, distance = _closest_pair(
+        (pick(position), pick(rotation), pick(half_a)),
+        (pick(other_position), pick(other_rotation), pick(half_b)),
+    )
+    near_points, near_normals, near_gaps, near_valid = (
+        pick(points), pick(normals), pick(gaps), pick(valid)
+    )  # fmt: skip
+    reached = torch.where(near_valid, near_gaps, torch.inf).amin(-1, keepdim=True)
+    reached = reached <= distance + pick(tol.expand(*shape[:-1], 1))
+    exact = pick(is_edge).unsqueeze(-1) | ~reached  # (N, 1)
     direction = _safe_divide(point_a - point_b, distance, 0.0)
     first = torch.arange(8, device=gaps.device) == 0
-    return (
-        torch.where(exact, point_a.unsqueeze(-2), points),
-        torch.where(exact, direction.unsqueeze(-2), normals),
-        torch.where(exact.squeeze(-1), distance, gaps),
-        torch.where(exact.squeeze(-1), first, valid),
+    replaced = (
+        torch.where(exact.unsqueeze(-1), point_a.unsqueeze(-2), near_points),
+        torch.where(exact.unsqueeze(-1), direction.unsqueeze(-2), near_normals),
+        torch.where(exact, distance, near_gaps),
+        torch.where(exact, first, near_valid),
+    )
+    return tuple(
+        full.reshape(-1, *full.shape[len(shape) - 1 :])
+        .index_copy(0, rows, part)
+        .reshape(full.shape)
+        for full, part in zip(chosen, replaced, strict=True)
     )
 
 
