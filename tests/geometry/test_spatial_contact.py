@@ -111,6 +111,10 @@ PAIRS = {
     "capsule-ground": (Capsule(0.1, 0.3), HalfSpace.ground(), 0.6, None),
     # Exact while the axis stays outside the box (penetration below the radius).
     "capsule-box": (Capsule(0.1, 0.3), BOX, 1.0, lambda d: d > -0.1),
+    "sphere-sphere": (Sphere(0.3), Sphere(0.2), 0.6, None),
+    "sphere-capsule": (Sphere(0.2), Capsule(0.1, 0.3), 0.6, None),
+    # Exact while the axes do not cross.
+    "capsule-capsule": (Capsule(0.1, 0.3), Capsule(0.15, 0.2), 0.6, lambda d: d > -0.25),
     "box-box": (Box((0.2, 0.3, 0.1)), BOX, 0.8, None),
     "cube-cube": (Box((0.2, 0.2, 0.2)), Box((0.2, 0.2, 0.2)), 0.5, None),
 }
@@ -200,7 +204,7 @@ def test_float32_matches_coal(pair: str) -> None:
 
 
 # Not box-box: there B's faces are preferred to A's (FACE_PREFERENCE), so the order can choose.
-@pytest.mark.parametrize("pair", ["sphere-box", "capsule-box", "box-ground"])
+@pytest.mark.parametrize("pair", ["sphere-box", "capsule-box", "box-ground", "sphere-capsule"])
 def test_either_order_gives_the_same_contacts_seen_from_the_other_side(pair: str) -> None:
     receiver, other, spread, _ = PAIRS[pair]
     rng = np.random.default_rng(3)
@@ -452,19 +456,33 @@ def test_capsule_on_a_wide_face_touches_at_its_end_balls_and_standing_at_its_tip
     _assert_same_points(standing, np.array([[0.1, 0.1, 0.299]]), 1e-12)
 
 
+def test_parallel_capsules_touch_along_their_overlap() -> None:
+    # Two capsules along x, one above the other, 1 mm into each other, overlapping on
+    # x in [-0.1, 0.3]: the slots are at the overlap's ends.
+    c = math.cos(math.pi / 4)
+    poses = torch.tensor(
+        [[0.0, 0.0, 0.249, c, 0.0, c, 0.0], [0.2, 0.0, 0.0, c, 0.0, c, 0.0]], dtype=torch.float64
+    )
+    table = spatial_slot_table([Capsule(0.1, 0.3), Capsule(0.15, 0.3)], [(0, 1)], margin=0.0)
+    slots = spatial_slots(table, poses)
+    points = slots.points[slots.active].numpy()
+    _assert_same_points(points, np.array([[-0.1, 0.0, 0.149], [0.3, 0.0, 0.149]]), 1e-12)
+    np.testing.assert_allclose(slots.phi[slots.active].numpy(), [-0.001, -0.001], atol=1e-12)
+
+
 # --- tables, batching, gradients, validation ---------------------------------------------------
 
 
 def test_table_lays_slots_out_group_by_group_and_batches() -> None:
     shapes = [Box((0.1, 0.2, 0.3)), HalfSpace.ground(), Sphere(0.1), Capsule(0.05, 0.2), BOX]
-    groups = [(0, 1), (2, 4), (3, 1), (4, 0), (3, 4), (2, 1)]
+    groups = [(0, 1), (2, 4), (3, 1), (4, 0), (3, 4), (2, 1), (3, 2), (2, 3)]
     table = spatial_slot_table(shapes, groups, margin=0.01)
     names = [type(s).__name__ for s in shapes]
     counts = [
         SPATIAL_SLOT_COUNTS.get((names[a], names[b]), SPATIAL_SLOT_COUNTS.get((names[b], names[a])))
         for a, b in groups
     ]
-    assert table.num_slots == sum(counts) == 8 + 1 + 2 + 8 + 3 + 1
+    assert table.num_slots == sum(counts) == 8 + 1 + 2 + 8 + 3 + 1 + 1 + 1
     expected_group = np.repeat(np.arange(len(groups)), counts)
     assert (table.slot_group.numpy() == expected_group).all()
     assert (table.slot_receiver.numpy() == np.array(groups)[expected_group, 0]).all()
@@ -513,6 +531,10 @@ def _phi_of(shapes, groups, positions, rotation_vectors):
          [[0.5, -0.7, 0.3], [0.0, 0.0, 0.2]]),
         ([Capsule(0.1, 0.3), BOX], [[0.2, 0.1, 0.39], [0.0, 0.0, 0.0]],
          [[0.2, 1.3, 0.1], [0.0, 0.0, 0.1]]),
+        ([Capsule(0.1, 0.3), Capsule(0.15, 0.2)], [[0.05, 0.1, 0.2], [0.0, 0.0, 0.0]],
+         [[0.3, 1.2, 0.1], [0.2, 0.0, 0.4]]),
+        ([Sphere(0.1), Capsule(0.15, 0.2)], [[0.05, 0.1, 0.2], [0.0, 0.0, 0.0]],
+         [[0.0, 0.0, 0.0], [0.2, 0.3, 0.4]]),
         ([Sphere(0.1), BOX], [[0.5, 0.45, 0.2], [0.0, 0.0, 0.0]],
          [[0.0, 0.0, 0.0], [0.1, 0.2, 0.3]]),
         ([Box((0.2, 0.3, 0.1)), HalfSpace.ground()], [[0.1, 0.2, 0.1], [0.0, 0.0, 0.0]],
@@ -549,7 +571,6 @@ def test_gradients_are_finite_at_the_identity_and_in_float32() -> None:
     [
         ([], [], 0.0, "shapes"),
         ([Box((1.0, 1.0, 1.0)), "box"], [(0, 1)], 0.0, "shapes"),
-        ([Sphere(0.1), Sphere(0.2)], [(0, 1)], 0.0, "groups"),
         ([HalfSpace.ground(), HalfSpace.ground(1.0)], [(0, 1)], 0.0, "groups"),
         ([Sphere(0.1), HalfSpace.ground()], [(0, 2)], 0.0, "groups"),
         ([Sphere(0.1), HalfSpace.ground()], [(0, 0)], 0.0, "groups"),

@@ -20,6 +20,10 @@ Contacts per pair (either order; receiver first below):
   slot the others make redundant is not active. Each slot is the contact of a ball of the
   capsule's radius on its axis with the box, exact while the axis stays outside the box; when it
   enters, the depth is that of the deepest axis point (less than the capsule's penetration);
+- sphere–sphere (1), sphere–capsule (1: the ball on the capsule's axis point closest to the
+  centre) and capsule–capsule (3: the closest points of the axes, and the two ends of the part
+  of the first axis alongside the second, each as a ball on the first axis against the second
+  capsule, so that parallel capsules touch along a line; redundant slots are not active);
 - box–box (8): the separating-axis test over the 15 axes (the 6 face normals, the 9 edge
   cross products), choosing B's face normals, then A's, then edge axes, the first whose overlap
   is within :data:`FACE_PREFERENCE` of the least (so that boxes resting on each other keep a
@@ -71,6 +75,9 @@ SPATIAL_SLOT_COUNTS: dict[tuple[str, str], int] = {
     ("Sphere", "Box"): 1,
     ("Capsule", "Box"): 3,
     ("Box", "Box"): 8,
+    ("Sphere", "Sphere"): 1,
+    ("Sphere", "Capsule"): 1,
+    ("Capsule", "Capsule"): 3,
 }
 
 #: Relative margin by which a box-box separating axis must beat a preferred one: B's face
@@ -490,6 +497,105 @@ def _balls_vs_box(local: Tensor, radius: Tensor, half: Tensor) -> tuple[Tensor, 
     normal = torch.where(outside, offset / distance, inward)
     gap = torch.where(outside, distance, -depth.gather(-1, face)).squeeze(-1) - radius
     return normal, gap
+
+
+def _balls(
+    centre: Tensor, radius: Tensor, other_centre: Tensor, other_radius: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Two balls (centres ``(..., 3)``, radii broadcasting to ``(..., 1)``): the point on the
+    first, the unit normal from the second into the first (``+z`` for coincident centres) and
+    the gap ``(...)``."""
+    offset = centre - other_centre
+    distance = _norm3(offset).unsqueeze(-1)
+    apart = distance > 0
+    up = torch.zeros_like(offset)
+    up[..., 2] = 1.0
+    normal = torch.where(apart, offset / torch.where(apart, distance, 1.0), up)
+    gap = (distance - radius - other_radius).squeeze(-1)
+    return centre - radius * normal, normal, gap
+
+
+def _on_segment(point: Tensor, centre: Tensor, axis: Tensor, half: Tensor) -> Tensor:
+    """The closest points ``(..., 3)`` to ``point`` of segments ``centre + s axis``,
+    ``|s| <= half`` (unit ``axis``; ``half`` ``(..., 1)``)."""
+    along = _dot3(point - centre, axis).unsqueeze(-1)
+    return centre + torch.minimum(torch.maximum(along, -half), half) * axis
+
+
+def _sphere_sphere(
+    position: Tensor,
+    rotation: Tensor,
+    sphere: Tensor,
+    other_position: Tensor,
+    other_rotation: Tensor,
+    other_sphere: Tensor,
+    margin: float,
+) -> tuple[Tensor, ...]:
+    """A sphere (1) against a sphere."""
+    del rotation, other_rotation, margin
+    points, normal, gap = _balls(position, sphere[:, :1], other_position, other_sphere[:, :1])
+    gap = gap.unsqueeze(-1)
+    return points.unsqueeze(-2), normal.unsqueeze(-2), gap, torch.ones_like(gap, dtype=torch.bool)
+
+
+def _sphere_capsule(
+    position: Tensor,
+    rotation: Tensor,
+    sphere: Tensor,
+    capsule_position: Tensor,
+    capsule_rotation: Tensor,
+    capsule: Tensor,
+    margin: float,
+) -> tuple[Tensor, ...]:
+    """A sphere (1) against a capsule: the ball on the axis point closest to the centre."""
+    del rotation, margin
+    nearest = _on_segment(position, capsule_position, capsule_rotation[..., 2], capsule[:, 1:2])
+    points, normal, gap = _balls(position, sphere[:, :1], nearest, capsule[:, :1])
+    gap = gap.unsqueeze(-1)
+    return points.unsqueeze(-2), normal.unsqueeze(-2), gap, torch.ones_like(gap, dtype=torch.bool)
+
+
+def _capsule_capsule(
+    position: Tensor,
+    rotation: Tensor,
+    capsule: Tensor,
+    other_position: Tensor,
+    other_rotation: Tensor,
+    other_capsule: Tensor,
+    margin: float,
+) -> tuple[Tensor, ...]:
+    """A capsule (3: the closest points of the axes, and the ends of the part of the first
+    axis alongside the second, so that parallel capsules touch along a line) against a
+    capsule. Each slot is a ball on the first axis against the second capsule."""
+    del margin
+    radius, half = capsule[:, :1], capsule[:, 1:2]
+    other_radius, other_half = other_capsule[:, :1], other_capsule[:, 1:2]
+    axis, other_axis = rotation[..., 2], other_rotation[..., 2]
+    closest, _ = _closest_on_segments(
+        (position, axis, half), (other_position, other_axis, other_half)
+    )
+    # The other axis's ends projected on the first axis, clipped to it.
+    ends = other_position.unsqueeze(-2) + torch.stack([-other_half, other_half], -2) * (
+        other_axis.unsqueeze(-2)
+    )  # (*B, G, 2, 3)
+    along = _dot3(ends - position.unsqueeze(-2), axis.unsqueeze(-2))  # (*B, G, 2)
+    low = along.amin(-1, keepdim=True).clamp(min=-half)
+    high = along.amax(-1, keepdim=True).clamp(max=half)
+    over = low <= high
+    side = torch.stack([low, high], -2) * axis.unsqueeze(-2) + position.unsqueeze(-2)
+    centres = torch.cat([closest.unsqueeze(-2), side], -2)  # (*B, G, 3, 3)
+    nearest = _on_segment(
+        centres, other_position.unsqueeze(-2), other_axis.unsqueeze(-2), other_half.unsqueeze(-2)
+    )
+    points, normals, gaps = _balls(
+        centres, radius.unsqueeze(-2), nearest, other_radius.unsqueeze(-2)
+    )
+    scale = torch.maximum(radius + half, other_radius + other_half)
+    tolerance = _tolerance(gaps.dtype, scale)
+    end_covers = over & (gaps[..., 1:].amin(-1, keepdim=True) <= gaps[..., :1] + tolerance)
+    distinct = (high - low) > tolerance
+    valid = torch.cat([~end_covers, over, over & distinct], -1)
+    return points, normals, gaps, valid
 
 
 def _sphere_box(
@@ -970,4 +1076,7 @@ _KERNELS: dict[tuple[str, str], _Kernel] = {
     ("Sphere", "Box"): _sphere_box,
     ("Capsule", "Box"): _capsule_box,
     ("Box", "Box"): _box_box,
+    ("Sphere", "Sphere"): _sphere_sphere,
+    ("Sphere", "Capsule"): _sphere_capsule,
+    ("Capsule", "Capsule"): _capsule_capsule,
 }
