@@ -92,7 +92,7 @@ def test_hand_written_constants_match_the_code() -> None:
 
 
 PAGES_WITH_CODE = ("getting-started.md", "guide/contact.md", "guide/simulator.md")
-PAGES_WITH_CODE += ("guide/filters.md", "guide/robots.md", "logs.md")
+PAGES_WITH_CODE += ("guide/filters.md", "guide/robots.md", "logs.md", "api/geometry.md")
 
 
 @pytest.mark.parametrize("page", PAGES_WITH_CODE)

@@ -1,7 +1,10 @@
-"""Geometry: planar polygons, half-planes, rigid transforms, quaternions and contact slots.
+"""Geometry: planar polygons and half-planes, spatial boxes, spheres, capsules and half-spaces,
+rigid transforms, quaternions and contact slots.
 
 ``TIE_TOLERANCE`` is the relative tolerance (of the longest edge) within which the slot
-generation (:func:`planar_slots`) takes two edges as equally close.
+generation (:func:`planar_slots`) takes two edges as equally close. ``FACE_PREFERENCE`` is the
+relative margin by which a box-box separating axis must beat a preferred one
+(:func:`spatial_slots`).
 """
 
 from torchcontact.geometry._quaternion import (
@@ -29,13 +32,29 @@ from torchcontact.geometry._slots import (
     planar_slot_table,
     planar_slots,
 )
+from torchcontact.geometry._spatial_contact import (
+    FACE_PREFERENCE,
+    SPATIAL_SLOT_COUNTS,
+    SpatialSlotTable,
+    slot_witness_points,
+    spatial_slot_table,
+    spatial_slots,
+)
+from torchcontact.geometry._spatial_shapes import Box, Capsule, HalfSpace, Sphere
 
 __all__ = [
+    "FACE_PREFERENCE",
+    "SPATIAL_SLOT_COUNTS",
     "TIE_TOLERANCE",
+    "Box",
+    "Capsule",
     "HalfPlane",
+    "HalfSpace",
     "PlanarSlotTable",
     "Polygon",
     "SlotGeometry",
+    "SpatialSlotTable",
+    "Sphere",
     "cross2",
     "dot2",
     "perpendicular",
@@ -48,6 +67,9 @@ __all__ = [
     "quat_mul",
     "quat_to_matrix",
     "rotation_matrix",
+    "slot_witness_points",
+    "spatial_slot_table",
+    "spatial_slots",
     "transform_points",
     "wrap_angle",
     "wrench_row",
