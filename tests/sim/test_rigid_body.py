@@ -10,7 +10,7 @@ import torch
 from torchcontact.geometry import quat_exp, quat_mul, quat_to_matrix
 from torchcontact.sim import (
     free_angular_velocity,
-    friction_directions,
+    tangent_directions,
     integrate_poses,
     spatial_mass_matrix,
     tangent_basis,
@@ -163,11 +163,11 @@ def test_tangent_basis_is_a_right_handed_orthonormal_frame(dtype: torch.dtype) -
     )
 
 
-def test_friction_directions_follow_the_problem_convention() -> None:
+def test_tangent_directions_follow_the_problem_convention() -> None:
     normal = torch.randn(50, 3, dtype=torch.float64)
     normal = normal / normal.norm(dim=-1, keepdim=True)
     for D in (4, 6, 8):
-        directions = friction_directions(normal, D)
+        directions = tangent_directions(normal, D)
         assert directions.shape == (50, D, 3)
         assert ((directions[:, : D // 2] + directions[:, D // 2 :]) == 0).all()  # exact: negated
         torch.testing.assert_close(
@@ -187,4 +187,4 @@ def test_friction_directions_follow_the_problem_convention() -> None:
             atol=1e-12,
         )
     with pytest.raises(ValueError, match="num_directions"):
-        friction_directions(normal, 3)
+        tangent_directions(normal, 3)

@@ -6,10 +6,10 @@ from torchcontact.sim._penetration import penetration
 from torchcontact.sim._plot import draw_scene
 from torchcontact.sim._rigid_body import (
     free_angular_velocity,
-    friction_directions,
     integrate_poses,
     spatial_mass_matrix,
     tangent_basis,
+    tangent_directions,
     world_inertia,
 )
 from torchcontact.sim._scene import Body, BodyKind, Scene, SlotGroup
@@ -41,7 +41,6 @@ __all__ = [
     "contact_problem",
     "draw_scene",
     "free_angular_velocity",
-    "friction_directions",
     "integrate_poses",
     "penetration",
     "pushed_box_rollout",
@@ -49,5 +48,6 @@ __all__ = [
     "slot_friction",
     "spatial_mass_matrix",
     "tangent_basis",
+    "tangent_directions",
     "world_inertia",
 ]

@@ -162,7 +162,7 @@ def tangent_basis(normal: Tensor) -> Tensor:
     return torch.stack([t1, t2], dim=-2)
 
 
-def friction_directions(normal: Tensor, num_directions: int) -> Tensor:
+def tangent_directions(normal: Tensor, num_directions: int) -> Tensor:
     """``D`` unit friction directions per normal, evenly spaced in the tangent plane.
 
     Direction ``d`` is ``cos(2πd/D) t₁ + sin(2πd/D) t₂`` (:func:`tangent_basis`): ordered by
