@@ -106,6 +106,7 @@ def slot_layout(scene: Scene, device: torch.device) -> SlotLayout:
         slot_kinematic.extend([scene.kinematic.index(partner) if moving else 0] * group.count)
         feature_sign.extend([signs] * group.count)
 
+    assert scene.gravity is not None  # set by Scene.__post_init__
     gravity = torch.tensor([*scene.gravity, 0.0], dtype=f64)
     static_poses = torch.zeros(len(static) + len(planes), 3, dtype=f64)
     for s, body_index in enumerate(static):

@@ -4,6 +4,14 @@ from torchcontact.sim._assemble import body_poses, contact_problem, slot_frictio
 from torchcontact.sim._examples import pushed_box_rollout, pushed_box_scene
 from torchcontact.sim._penetration import penetration
 from torchcontact.sim._plot import draw_scene
+from torchcontact.sim._rigid_body import (
+    free_angular_velocity,
+    integrate_poses,
+    spatial_mass_matrix,
+    tangent_basis,
+    tangent_directions,
+    world_inertia,
+)
 from torchcontact.sim._scene import Body, BodyKind, Scene, SlotGroup
 from torchcontact.sim._simulator import (
     SOLVED_BY_EXACT_MODE,
@@ -32,8 +40,14 @@ __all__ = [
     "body_poses",
     "contact_problem",
     "draw_scene",
+    "free_angular_velocity",
+    "integrate_poses",
     "penetration",
     "pushed_box_rollout",
     "pushed_box_scene",
     "slot_friction",
+    "spatial_mass_matrix",
+    "tangent_basis",
+    "tangent_directions",
+    "world_inertia",
 ]

@@ -12,13 +12,21 @@ from torch import Tensor
 from torchcontact.contact import ContactProblem
 from torchcontact.geometry import (
     HalfPlane,
+    HalfSpace,
     PlanarSlotTable,
-    Polygon,
     SlotGeometry,
+    SpatialSlotTable,
     cross2,
-    dot2,
     planar_slot_table,
     planar_slots,
+    spatial_slot_table,
+    spatial_slots,
+)
+from torchcontact.sim._rigid_body import (
+    free_angular_velocity,
+    spatial_mass_matrix,
+    tangent_directions,
+    world_inertia,
 )
 from torchcontact.sim._scene import Scene
 from torchcontact.sim._state import SceneState
@@ -28,14 +36,16 @@ from torchcontact.sim._state import SceneState
 class SceneLayout:
     """Index tables of a scene, in one dtype and on one device, built once.
 
-    The scene's shapes are ordered ``[dynamic bodies, kinematic bodies, static polygons,
-    half-planes]``, so that their poses are ``[q, q_kinematic, static_poses]``.
+    The scene's shapes are ordered ``[dynamic bodies, kinematic bodies, static bodies with a
+    pose, half-planes or half-spaces]``, so that their poses are
+    ``[q, q_kinematic, static_poses]``.
 
     Attributes:
+        dimension: 2 (planar) or 3 (spatial).
         slots: the slot geometry's tables of the shapes and the scene's slot groups (slot
             order: the scene's).
-        static_poses: ``(Nf, 3)`` world poses of the static polygons, then zeros for the
-            half-planes.
+        static_poses: ``(Nf, 3)`` or ``(Nf, 7)`` world poses of the static bodies, then the
+            zero pose for the half-planes (half-spaces).
         receiver_column: ``(K,)`` long: the dynamic-body index of each slot's receiver, ``Nd``
             if it is not dynamic.
         other_column: ``(K,)`` long: the same for each slot's other body.
@@ -51,13 +61,18 @@ class SceneLayout:
         slot_friction: ``(K,)`` long: each slot's index into ``friction_sources``.
         mu: ``(K,)`` the slots' friction coefficients, or ``None`` when a coefficient is a
             tensor that requires grad or varies over the batch (then gathered every step).
-        mass_matrix: ``(n, n)`` the mass matrix, or ``None`` when a mass or inertia requires
-            grad (then recomputed every step).
-        gravity_force: ``(Nd, 3)`` the bodies' weights ``(m gx, m gy, 0)``, or ``None`` with
-            ``mass_matrix``.
+        mass_matrix: ``(n, n)`` the mass matrix of a planar scene, or ``None`` when a mass or
+            inertia requires grad (then recomputed every step) or the scene is spatial.
+        gravity_force: ``(Nd, 3)`` or ``(Nd, 6)`` the bodies' weights ``(m g, 0)``, or
+            ``None`` when a mass requires grad.
+        masses: ``(Nd,)`` the dynamic bodies' masses (spatial scenes; ``None`` when one
+            requires grad).
+        inertias: ``(Nd, 3, 3)`` their body-frame inertias (spatial scenes; ``None`` when one
+            requires grad).
     """
 
-    slots: PlanarSlotTable
+    dimension: int
+    slots: PlanarSlotTable | SpatialSlotTable
     static_poses: Tensor
     receiver_column: Tensor
     other_column: Tensor
@@ -72,6 +87,8 @@ class SceneLayout:
     mu: Tensor | None
     mass_matrix: Tensor | None
     gravity_force: Tensor | None
+    masses: Tensor | None
+    inertias: Tensor | None
 
 
 _LAYOUTS: weakref.WeakKeyDictionary[Scene, dict[tuple[torch.dtype, torch.device], SceneLayout]]
@@ -94,17 +111,22 @@ def scene_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> Scen
 
 def _build_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> SceneLayout:
     static = [i for i, b in enumerate(scene.bodies) if b.kind == "static"]
-    polygons = [i for i in static if isinstance(scene.bodies[i].shape, Polygon)]
-    planes = [i for i in static if isinstance(scene.bodies[i].shape, HalfPlane)]
-    order = [*scene.dynamic, *scene.kinematic, *polygons, *planes]
+    unbounded = (HalfPlane, HalfSpace)
+    posed = [i for i in static if not isinstance(scene.bodies[i].shape, unbounded)]
+    planes = [i for i in static if isinstance(scene.bodies[i].shape, unbounded)]
+    order = [*scene.dynamic, *scene.kinematic, *posed, *planes]
     shape_index = {body: s for s, body in enumerate(order)}
-    table = planar_slot_table(
-        [scene.bodies[i].shape for i in order],
-        [(shape_index[g.receiver], shape_index[g.other]) for g in scene.slot_groups],
-        margin=scene.margin,
-    )
-    static_poses = torch.zeros(len(polygons) + len(planes), 3, dtype=torch.float64)
-    for s, body in enumerate(polygons):
+    shapes = [scene.bodies[i].shape for i in order]
+    groups = [(shape_index[g.receiver], shape_index[g.other]) for g in scene.slot_groups]
+    table: PlanarSlotTable | SpatialSlotTable
+    if scene.dimension == 2:
+        table = planar_slot_table(shapes, groups, margin=scene.margin)
+    else:
+        table = spatial_slot_table(shapes, groups, margin=scene.margin)  # type: ignore[arg-type]
+    static_poses = torch.zeros(len(posed) + len(planes), scene.pose_size, dtype=torch.float64)
+    if scene.dimension == 3:
+        static_poses[:, 3] = 1.0  # identity quaternions
+    for s, body in enumerate(posed):
         pose = scene.bodies[body].pose
         assert pose is not None
         static_poses[s] = pose.detach()
@@ -140,15 +162,20 @@ def _build_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> Sce
         for value in (scene.bodies[i].mass, scene.bodies[i].inertia)
         if isinstance(value, Tensor)
     ]
-    mass_matrix = gravity_force = None
+    mass_matrix = gravity_force = masses = inertias = None
     if not any(value.requires_grad for value in parameters):
-        mass_matrix = scene.mass_matrix().detach().to(dtype=dtype, device=device)
         gravity_force = _gravity_force(scene, dtype, device).detach()
+        if scene.dimension == 2:
+            mass_matrix = scene.mass_matrix().detach().to(dtype=dtype, device=device)
+        else:
+            masses = scene.masses().detach().to(dtype=dtype, device=device)
+            inertias = scene.inertias().detach().to(dtype=dtype, device=device)
 
     def move(value: Tensor) -> Tensor:
         return value.to(device=device, dtype=dtype if value.is_floating_point() else value.dtype)
 
     return SceneLayout(
+        dimension=scene.dimension,
         slots=table.to(dtype=dtype, device=device),
         static_poses=move(static_poses),
         receiver_column=move(columns["rd"]),
@@ -164,6 +191,8 @@ def _build_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> Sce
         mu=mu,
         mass_matrix=mass_matrix,
         gravity_force=gravity_force,
+        masses=masses,
+        inertias=inertias,
     )
 
 
@@ -192,14 +221,17 @@ def slot_friction(scene: Scene, *, dtype: torch.dtype, device: torch.device) -> 
 
 
 def _gravity_force(scene: Scene, dtype: torch.dtype, device: torch.device) -> Tensor:
-    """``(Nd, 3)`` the dynamic bodies' weights ``(m gx, m gy, 0)`` (keeps a tensor mass's
-    graph)."""
-    gravity = torch.tensor([*scene.gravity, 0.0], dtype=dtype, device=device)
+    """``(Nd, 3)`` or ``(Nd, 6)`` the dynamic bodies' weights ``(m g, 0)`` (keeps a tensor
+    mass's graph)."""
+    assert scene.gravity is not None
+    torque = [0.0] * (scene.twist_size - scene.dimension)
+    gravity = torch.tensor([*scene.gravity, *torque], dtype=dtype, device=device)
     return scene.masses().to(dtype=dtype, device=device)[:, None] * gravity
 
 
 def body_poses(scene: Scene, state: SceneState) -> list[Tensor | None]:
-    """World pose ``(*B, 3)`` of every body (``None`` for half-planes)."""
+    """World pose ``(*B, 3)`` (planar) or ``(*B, 7)`` (spatial) of every body (``None`` for
+    half-planes and half-spaces)."""
     poses: list[Tensor | None] = []
     batch = state.batch_shape
     for i, body in enumerate(scene.bodies):
@@ -207,18 +239,17 @@ def body_poses(scene: Scene, state: SceneState) -> list[Tensor | None]:
             poses.append(state.q[..., scene.dynamic.index(i), :])
         elif body.kind == "kinematic":
             poses.append(state.q_kinematic[..., scene.kinematic.index(i), :])
-        elif isinstance(body.shape, Polygon):
-            assert body.pose is not None
-            poses.append(body.pose.to(state.q).expand(*batch, 3))
+        elif body.pose is not None:
+            poses.append(body.pose.to(state.q).expand(*batch, scene.pose_size))
         else:
             poses.append(None)
     return poses
 
 
 def shape_poses(layout: SceneLayout, q: Tensor, q_kinematic: Tensor) -> Tensor:
-    """``(*B, Ns, 3)`` world poses of the layout's shapes, from the dynamic ``(*B, Nd, 3)``
-    and kinematic ``(*B, Nk, 3)`` poses."""
-    static = layout.static_poses.expand(*q.shape[:-2], -1, 3)
+    """``(*B, Ns, 3)`` or ``(*B, Ns, 7)`` world poses of the layout's shapes, from the
+    dynamic ``(*B, Nd, ·)`` and kinematic ``(*B, Nk, ·)`` poses."""
+    static = layout.static_poses.expand(*q.shape[:-2], -1, q.shape[-1])
     return torch.cat([q, q_kinematic, static], dim=-2)
 
 
@@ -227,35 +258,65 @@ def _pick(table: Tensor, index: Tensor) -> Tensor:
     return table.gather(1, index.unsqueeze(-1).expand(*index.shape, table.shape[-1]))
 
 
+def moment_rows(arm: Tensor, directions: Tensor) -> Tensor:
+    """``[u, r × u]``: the wrench of a unit force ``u`` at offset ``r`` from a centroid, which is
+    also the row mapping the body's twist to its point velocity along ``u``.
+
+    Args:
+        arm: ``(..., d)`` offsets ``r``, world frame (broadcast against ``directions``).
+        directions: ``(..., d)`` directions ``u``, world frame.
+
+    Returns:
+        ``(..., 3)`` rows ``(ux, uy, r × u)`` (``d = 2``) or ``(..., 6)`` rows
+        ``(u, r × u)`` (``d = 3``).
+    """
+    if directions.shape[-1] == 2:
+        return torch.cat([directions, cross2(arm, directions).unsqueeze(-1)], dim=-1)
+    moment = torch.linalg.cross(arm.expand_as(directions), directions)
+    return torch.cat([directions, moment], dim=-1)
+
+
+def point_velocities(twist: Tensor, arm: Tensor) -> Tensor:
+    """``v + ω × r``: velocities of points at offsets ``arm`` from centroids moving with
+    ``twist`` (``(..., 3)`` planar ``(vx, vy, ω)`` with ``(..., 2)`` offsets, or ``(..., 6)``
+    spatial ``(v, ω)`` with ``(..., 3)`` offsets), world frame."""
+    if arm.shape[-1] == 2:
+        spun = torch.stack([-arm[..., 1], arm[..., 0]], dim=-1)
+        return torch.addcmul(twist[..., :2], twist[..., 2:], spun)
+    velocity: Tensor = twist[..., :3] + torch.linalg.cross(twist[..., 3:], arm)
+    return velocity
+
+
 def dynamic_rows(
     layout: SceneLayout, poses: Tensor, points: Tensor, directions: Tensor, slots: Tensor
 ) -> Tensor:
     """Rows mapping the dynamic bodies' twists to slots' relative velocities along directions.
 
     A dynamic receiver contributes ``+[u, r × u]`` (``r`` from its centroid to the slot's
-    point), a dynamic other body ``−[u, r × u]``, in its three columns.
+    point, :func:`moment_rows`), a dynamic other body ``−[u, r × u]``, in its columns.
 
     Args:
         layout: the scene's layout.
-        poses: ``(P, Ns, 3)`` world poses of the layout's shapes.
-        points: ``(P, W, 2)`` the slots' points, world frame.
-        directions: ``(P, W, F, 2)`` unit directions ``u`` per slot, world frame.
+        poses: ``(P, Ns, 3)`` or ``(P, Ns, 7)`` world poses of the layout's shapes.
+        points: ``(P, W, d)`` the slots' points, world frame.
+        directions: ``(P, W, F, d)`` unit directions ``u`` per slot, world frame.
         slots: ``(P, W)`` long: the slots' indices among the scene's ``K``.
 
     Returns:
-        ``(P, W, F, 3 Nd)`` rows.
+        ``(P, W, F, n)`` rows, ``n = 3 Nd`` (planar) or ``6 Nd`` (spatial).
     """
+    d = points.shape[-1]
     members = [(layout.slots.slot_receiver, layout.receiver_column, 1)]
     if layout.mutual:
         members.append((layout.slots.slot_other, layout.other_column, -1))
     wrenches, columns = [], []
     for shape, column, sign in members:
-        arm = (points - _pick(poses, shape[slots])[..., :2]).unsqueeze(-2)  # (P, W, 1, 2)
-        wrench = torch.cat([directions, cross2(arm, directions).unsqueeze(-1)], dim=-1)
+        arm = (points - _pick(poses, shape[slots])[..., :d]).unsqueeze(-2)  # (P, W, 1, d)
+        wrench = moment_rows(arm, directions)
         wrenches.append(wrench if sign > 0 else -wrench)
         columns.append(column[slots][..., None, None])  # (P, W, 1, 1)
-    # One block of three columns per dynamic body: the wrenches of the slots' members that
-    # are that body.
+    # One block of columns per dynamic body: the wrenches of the slots' members that are
+    # that body.
     blocks = []
     for body in range(layout.num_dynamic):
         block = torch.where(columns[0] == body, wrenches[0], 0.0)
@@ -273,27 +334,28 @@ def known_velocities(
 
     Args:
         layout: the scene's layout.
-        poses: ``(P, Ns, 3)`` world poses of the layout's shapes.
-        points: ``(P, K, 2)`` every slot's point, world frame.
-        frames: ``(P, K, F, 2)`` unit directions per slot, world frame.
-        control: ``(P, Nk, 3)`` twists of the kinematic bodies, or ``None`` (at rest).
+        poses: ``(P, Ns, 3)`` or ``(P, Ns, 7)`` world poses of the layout's shapes.
+        points: ``(P, K, d)`` every slot's point, world frame.
+        frames: ``(P, K, F, d)`` unit directions per slot, world frame.
+        control: ``(P, Nk, 3)`` or ``(P, Nk, 6)`` twists of the kinematic bodies, or ``None``
+            (at rest).
     """
     known = frames.new_zeros(frames.shape[:-1])
     if control is None:
         return known
+    d = points.shape[-1]
     # Twists of the slots' members, zero where a member is not kinematic.
-    twists = torch.cat([control, control.new_zeros(control.shape[0], 1, 3)], dim=-2)
+    twists = torch.cat([control, control.new_zeros(control.shape[0], 1, control.shape[-1])], -2)
     slots = layout.slots
     for driven, shape, driver, sign in (
         (layout.driven_receiver, slots.slot_receiver, layout.receiver_driver, 1.0),
         (layout.driven_other, slots.slot_other, layout.other_driver, -1.0),
     ):
         if driven:
-            twist = twists.index_select(-2, driver)  # (P, K, 3)
-            arm = points - poses.index_select(-2, shape)[..., :2]
-            spun = arm.flip(-1) * slots.turn
-            velocity = torch.addcmul(twist[..., :2], twist[..., 2:], spun)
-            known = known + sign * dot2(frames, velocity.unsqueeze(-2))
+            twist = twists.index_select(-2, driver)  # (P, K, ·)
+            arm = points - poses.index_select(-2, shape)[..., :d]
+            velocity = point_velocities(twist, arm)
+            known = known + sign * (frames * velocity.unsqueeze(-2)).sum(-1)
     return known
 
 
@@ -303,11 +365,14 @@ class SlotState:
 
     Attributes:
         layout: the scene's layout.
-        poses: ``(P, Ns, 3)`` world poses of the layout's shapes.
+        poses: ``(P, Ns, 3)`` or ``(P, Ns, 7)`` world poses of the layout's shapes.
         geometry: the ``K`` slots' geometry, batch ``(P,)``.
-        frames: ``(P, K, 2, 2)`` each slot's normal ``n`` and tangent ``t`` (``n`` turned by
-            +90°), world frame.
-        known: ``(P, K, 2)`` the known velocity terms ``bn`` and ``bt`` (along ``+t``).
+        frames: ``(P, K, 1 + D/2, d)`` each slot's normal ``n`` and the first half of its
+            friction directions (the other half are their opposites), world frame: planar,
+            the tangent ``t`` (``n`` turned by +90°); spatial,
+            :func:`~torchcontact.sim.tangent_directions`.
+        known: ``(P, K, 1 + D/2)`` the known velocity terms ``bn`` and the first half of
+            ``bt``.
     """
 
     layout: SceneLayout
@@ -318,13 +383,19 @@ class SlotState:
 
 
 def slot_state(scene: Scene, q: Tensor, q_kinematic: Tensor, control: Tensor | None) -> SlotState:
-    """The :class:`SlotState` of a flat batch: dynamic poses ``q (P, Nd, 3)``, kinematic poses
-    ``q_kinematic (P, Nk, 3)`` and twists ``control (P, Nk, 3)`` (or ``None``)."""
+    """The :class:`SlotState` of a flat batch: dynamic poses ``q (P, Nd, ·)``, kinematic poses
+    ``q_kinematic (P, Nk, ·)`` and twists ``control (P, Nk, ·)`` (or ``None``)."""
     layout = scene_layout(scene, q.dtype, q.device)
     poses = shape_poses(layout, q, q_kinematic)
-    geometry = planar_slots(layout.slots, poses)
-    normal = geometry.normals
-    frames = torch.stack([normal, normal.flip(-1) * layout.slots.turn], dim=-2)
+    if isinstance(layout.slots, PlanarSlotTable):
+        geometry = planar_slots(layout.slots, poses)
+        normal = geometry.normals
+        frames = torch.stack([normal, normal.flip(-1) * layout.slots.turn], dim=-2)
+    else:
+        geometry = spatial_slots(layout.slots, poses)
+        half = scene.friction_directions // 2
+        directions = tangent_directions(geometry.normals, scene.friction_directions)
+        frames = torch.cat([geometry.normals.unsqueeze(-2), directions[..., :half, :]], dim=-2)
     known = known_velocities(layout, poses, geometry.points, frames, control)
     return SlotState(layout, poses, geometry, frames, known)
 
@@ -340,12 +411,17 @@ def assemble(
 ) -> ContactProblem:
     """The contact problem of a flat batch on the slots ``keep``.
 
+    A spatial scene's mass matrix is the world-frame one at the poses
+    (:func:`~torchcontact.sim.spatial_mass_matrix`), and its non-contact force includes the
+    implicit gyroscopic step (:func:`~torchcontact.sim.free_angular_velocity`) as the torque
+    ``I_w (ω_free − ω) / h``, so that the problem's ``v_free`` is that step's.
+
     Args:
         scene: the scene.
         slots: the batch's :class:`SlotState`, batch ``(P,)``.
-        v: ``(P, Nd, 3)`` twists of the dynamic bodies.
+        v: ``(P, Nd, 3)`` or ``(P, Nd, 6)`` twists of the dynamic bodies.
         keep: ``(P, W)`` long: the slots of each entry's problem, among the ``K``.
-        force: ``(P, Nd, 3)`` applied generalized forces, or ``None``.
+        force: ``(P, Nd, 3)`` or ``(P, Nd, 6)`` applied generalized forces, or ``None``.
         friction: ``(P, K)`` per-slot friction overriding the scene's, or ``None``.
 
     Returns:
@@ -362,33 +438,61 @@ def assemble(
 
     frames = gather(slots.frames)
     rows = dynamic_rows(layout, slots.poses, gather(geometry.points), frames, keep)
-    Jt_row = rows[..., 1, :]
+    Jt_half = rows[..., 1:, :]
     known = gather(slots.known)
-    if layout.mass_matrix is None or layout.gravity_force is None:
-        M = scene.mass_matrix().to(dtype=dtype, device=device)
+    twist = v.shape[-1]
+    f = layout.gravity_force
+    if f is None:
         f = _gravity_force(scene, dtype, device)
+    f = f.expand(P, -1, twist) if force is None else f + force
+    if layout.dimension == 2:
+        M = layout.mass_matrix
+        if M is None:
+            M = scene.mass_matrix().to(dtype=dtype, device=device)
     else:
-        M, f = layout.mass_matrix, layout.gravity_force
-    f = f.expand(P, -1, 3) if force is None else f + force
+        M, gyroscopic = _spatial_inertia(scene, layout, slots.poses, v)
+        f = f + gyroscopic
     if friction is not None:
         mu = gather(friction)
     elif layout.mu is not None:
         mu = layout.mu[keep]
     else:
         mu = slot_friction(scene, dtype=dtype, device=device).expand(P, -1).gather(1, keep)
+    phi = gather(geometry.phi)
+    assert scene.recovery_speed is not None
+    if math.isfinite(scene.recovery_speed):
+        phi = phi.clamp(min=-scene.h * scene.recovery_speed)
     return ContactProblem.unchecked(
         M=M,
         v=v.flatten(-2),
         f=f.flatten(-2),
         Jn=rows[..., 0, :],
-        Jt=torch.stack([Jt_row, -Jt_row], dim=-2),
-        phi=gather(geometry.phi),
+        Jt=torch.cat([Jt_half, -Jt_half], dim=-2),
+        phi=phi,
         mu=mu,
         h=scene.h,
         mask=gather(geometry.active),
         bn=known[..., 0],
-        bt=torch.stack([known[..., 1], -known[..., 1]], dim=-1),
+        bt=torch.cat([known[..., 1:], -known[..., 1:]], dim=-1),
     )
+
+
+def _spatial_inertia(
+    scene: Scene, layout: SceneLayout, poses: Tensor, v: Tensor
+) -> tuple[Tensor, Tensor]:
+    """The mass matrix ``(P, 6 Nd, 6 Nd)`` of a spatial batch at its poses and the gyroscopic
+    torques ``(P, Nd, 6)`` ``(0, I_w (ω_free − ω) / h)`` of the implicit free step."""
+    masses, inertias = layout.masses, layout.inertias
+    if masses is None or inertias is None:
+        masses = scene.masses().to(dtype=v.dtype, device=v.device)
+        inertias = scene.inertias().to(dtype=v.dtype, device=v.device)
+    quaternion = poses[:, : layout.num_dynamic, 3:]
+    M = spatial_mass_matrix(masses, inertias, quaternion)
+    omega = v[..., 3:]
+    omega_free = free_angular_velocity(inertias, quaternion, omega, scene.h)
+    inertia_world = world_inertia(inertias, quaternion)
+    torque = (inertia_world @ (omega_free - omega).unsqueeze(-1)).squeeze(-1) / scene.h
+    return M, torch.cat([torch.zeros_like(torque), torque], dim=-1)
 
 
 def contact_problem(
@@ -401,43 +505,53 @@ def contact_problem(
 ) -> tuple[ContactProblem, SlotGeometry]:
     """Assemble the Stewart–Trinkle step of a batch of scenes.
 
-    For a slot at world point ``p`` with normal ``n`` (from ``other`` into ``receiver``) and
-    tangent ``t = n`` rotated by +90°, the gap rate is ``n · (v_p,receiver − v_p,other)``: a
-    dynamic body contributes the row ``±[n, r × n]`` (``r`` from its centroid to ``p``) to
-    ``Jn``, a kinematic body its known point velocity to ``bn``, a static body nothing.
-    Friction directions are ``+t`` and ``−t``. Every slot group is computed at once
-    (:func:`~torchcontact.geometry.planar_slots` on the scene's cached tables). The inputs are
-    not validated (:meth:`Simulator.step` validates them).
+    For a slot at world point ``p`` with normal ``n`` (from ``other`` into ``receiver``), the
+    gap rate is ``n · (v_p,receiver − v_p,other)``: a dynamic body contributes the row
+    ``±[n, r × n]`` (``r`` from its centroid to ``p``) to ``Jn``, a kinematic body its known
+    point velocity to ``bn``, a static body nothing; friction directions the same way. Planar
+    scenes have the directions ``+t`` and ``−t`` (``t = n`` rotated by +90°), spatial scenes
+    the scene's ``friction_directions`` (:func:`~torchcontact.sim.tangent_directions`). Every
+    slot group is computed at once (:func:`~torchcontact.geometry.planar_slots` or
+    :func:`~torchcontact.geometry.spatial_slots` on the scene's cached tables). The inputs
+    are not validated (:meth:`Simulator.step` validates them).
 
     Args:
         scene: the scene.
         state: the batched state ``*B``.
-        control: ``(*B, Nk, 3)`` twists of the kinematic bodies (world frame), or ``None``
-            when the scene has none (or they rest).
-        force: ``(*B, Nd, 3)`` applied generalized forces ``(fx, fy, τ)`` on the dynamic
-            bodies, besides gravity.
+        control: ``(*B, Nk, 3)`` (planar) or ``(*B, Nk, 6)`` (spatial) twists of the
+            kinematic bodies (world frame), or ``None`` when the scene has none (or they
+            rest).
+        force: ``(*B, Nd, 3)`` or ``(*B, Nd, 6)`` applied generalized forces
+            (``(fx, fy, τ)``, or force and torque) on the dynamic bodies, besides gravity.
         friction: ``(*B, K)`` per-slot friction overriding the scene's pair friction.
 
     Returns:
-        The contact problem (``n = 3 Nd``, ``K`` slots, ``D = 2``) and the slot geometry
-        (points, normals from each slot's ``other`` body into its receiver, gaps, candidates).
+        The contact problem (``n = 3 Nd`` and ``D = 2``, or ``n = 6 Nd`` and the scene's
+        ``D``; ``K`` slots) and the slot geometry (points, normals from each slot's ``other``
+        body into its receiver, gaps, candidates).
     """
     batch, K = state.batch_shape, scene.num_slots
     P, Nd, Nk = math.prod(batch), len(scene.dynamic), len(scene.kinematic)
+    pose, twist, d = scene.pose_size, scene.twist_size, scene.dimension
 
     def flat(t: Tensor | None) -> Tensor | None:
         return None if t is None else t.reshape(P, *t.shape[len(batch) :])
 
-    q, q_kinematic = state.q.reshape(P, Nd, 3), state.q_kinematic.reshape(P, Nk, 3)
+    q, q_kinematic = state.q.reshape(P, Nd, pose), state.q_kinematic.reshape(P, Nk, pose)
     slots = slot_state(scene, q, q_kinematic, flat(control))
     keep = torch.arange(K, device=q.device).expand(P, K)
     problem = assemble(
-        scene, slots, state.v.reshape(P, Nd, 3), keep, force=flat(force), friction=flat(friction)
+        scene,
+        slots,
+        state.v.reshape(P, Nd, twist),
+        keep,
+        force=flat(force),
+        friction=flat(friction),
     )
     geometry = slots.geometry
     return problem.reshape(*batch), SlotGeometry(
-        points=geometry.points.reshape(*batch, K, 2),
-        normals=geometry.normals.reshape(*batch, K, 2),
+        points=geometry.points.reshape(*batch, K, d),
+        normals=geometry.normals.reshape(*batch, K, d),
         phi=geometry.phi.reshape(*batch, K),
         active=geometry.active.reshape(*batch, K),
     )

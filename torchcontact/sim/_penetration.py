@@ -67,6 +67,8 @@ def _culling(scene: Scene, dtype: torch.dtype, device: torch.device) -> _Culling
     key = (dtype, device)
     if key not in cullings:
         layout = scene_layout(scene, dtype, device)
+        if not isinstance(layout.slots, PlanarSlotTable):
+            raise ValueError("scene: penetration queries are for planar scenes")
         split: dict[bool, list[int]] = {False: [], True: []}
         for g, group in enumerate(scene.slot_groups):
             split[isinstance(scene.bodies[group.other].shape, Polygon)].append(g)

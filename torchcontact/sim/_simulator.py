@@ -10,7 +10,13 @@ from typing import get_args
 import torch
 from torch import Tensor
 
-from torchcontact._checks import check_batched, check_float, check_int, check_real
+from torchcontact._checks import (
+    check_batched,
+    check_float,
+    check_int,
+    check_real,
+    check_unit_rows,
+)
 from torchcontact.contact import (
     ContactProblem,
     Method,
@@ -23,6 +29,7 @@ from torchcontact.contact import (
 )
 from torchcontact.geometry import SlotGeometry
 from torchcontact.sim._assemble import assemble, slot_state
+from torchcontact.sim._rigid_body import integrate_poses
 from torchcontact.sim._scene import Scene
 from torchcontact.sim._state import SceneState
 
@@ -40,7 +47,7 @@ class StepResult:
     Attributes:
         state: the state after the step (its ``mode`` is this step's modes).
         pn: ``(*B, K)`` normal impulses.
-        pt: ``(*B, K, 2)`` friction impulses along ``+t`` and ``−t``.
+        pt: ``(*B, K, D)`` friction impulses along the friction directions (planar: ``+t``, ``−t``).
         mode: ``(*B, K)`` ground-truth contact modes.
         geometry: slot points, normals (world frame), gaps and candidate flags at the start.
         solver: ``(*B,)`` long: 0 the previous modes (after active-set corrections) were
@@ -64,14 +71,15 @@ class Rollout:
     """A simulated trajectory, time leading: ``T`` steps of a batch ``*B``.
 
     Attributes:
-        q: ``(T + 1, *B, Nd, 3)`` poses of the dynamic bodies.
-        v: ``(T + 1, *B, Nd, 3)`` twists of the dynamic bodies.
-        q_kinematic: ``(T + 1, *B, Nk, 3)`` poses of the kinematic bodies.
+        q: ``(T + 1, *B, Nd, 3)`` poses of the dynamic bodies (``(…, 7)`` spatial).
+        v: ``(T + 1, *B, Nd, 3)`` twists of the dynamic bodies (``(…, 6)`` spatial).
+        q_kinematic: ``(T + 1, *B, Nk, 3)`` poses of the kinematic bodies (``(…, 7)``
+            spatial).
         pn: ``(T, *B, K)`` normal impulses.
-        pt: ``(T, *B, K, 2)`` friction impulses.
+        pt: ``(T, *B, K, D)`` friction impulses.
         mode: ``(T, *B, K)`` contact modes.
-        points: ``(T, *B, K, 2)`` slot points at the start of each step.
-        normals: ``(T, *B, K, 2)`` slot normals at the start of each step.
+        points: ``(T, *B, K, d)`` slot points at the start of each step (``d = 2`` or 3).
+        normals: ``(T, *B, K, d)`` slot normals at the start of each step.
         active: ``(T, *B, K)`` slot candidate flags.
         solver: ``(T, *B)`` solver codes (see :class:`StepResult`).
     """
@@ -90,7 +98,7 @@ class Rollout:
 
 @dataclass(frozen=True, eq=False)
 class Simulator:
-    """Batched planar contact simulation with the Stewart–Trinkle LCP.
+    """Batched planar and spatial contact simulation with the Stewart–Trinkle LCP.
 
     Each step (semi-implicit Euler: ``q⁺ = q + h v⁺``, kinematic bodies ``q⁺ = q + h u``):
 
@@ -160,35 +168,46 @@ class Simulator:
         """A state from poses (twists default to zero, modes to separated).
 
         The last two dimensions are always the scene's bodies and their pose: one scene of a
-        one-body scene is ``q`` of shape ``(1, 3)`` (no batch), a batch of ``B`` of them
-        ``(B, 1, 3)``. (:func:`~torchcontact.contact.planar_box_problem`, a single box's
+        one-body planar scene is ``q`` of shape ``(1, 3)`` (no batch), a batch of ``B`` of
+        them ``(B, 1, 3)``. (:func:`~torchcontact.contact.planar_box_problem`, a single box's
         problem, reads ``(B, 3)`` as a batch of ``B`` boxes instead.)
 
         Args:
-            q: ``(*B, Nd, 3)`` dynamic-body poses ``(x, y, θ)``, world frame.
-            v: ``(*B, Nd, 3)`` twists, default zero.
-            q_kinematic: ``(*B, Nk, 3)`` kinematic-body poses (required if there are any).
+            q: ``(*B, Nd, 3)`` dynamic-body poses ``(x, y, θ)`` (planar) or ``(*B, Nd, 7)``
+                positions and unit quaternions ``(w, x, y, z)`` (spatial), world frame.
+            v: ``(*B, Nd, 3)`` or ``(*B, Nd, 6)`` twists, default zero.
+            q_kinematic: kinematic-body poses shaped like ``q`` with ``Nk`` bodies (required
+                if there are any).
 
         Raises:
             ValueError: naming the argument that is not a finite float32/float64 tensor of
-                its shape, or whose dtype differs from ``q``'s.
+                its shape, or whose dtype differs from ``q``'s, or whose quaternions are not
+                of unit norm.
         """
-        num_dynamic, num_kinematic = len(self.scene.dynamic), len(self.scene.kinematic)
-        names = ", ".join(self.scene.bodies[i].name for i in self.scene.dynamic)
-        what = f"(*B, {num_dynamic}, 3): batch, then the dynamic bodies ({names}), then (x, y, θ)"
-        q = check_float("q", q, trailing=(num_dynamic, 3), min_ndim=2, what=what)
+        scene = self.scene
+        num_dynamic, num_kinematic = len(scene.dynamic), len(scene.kinematic)
+        pose, twist = scene.pose_size, scene.twist_size
+        names = ", ".join(scene.bodies[i].name for i in scene.dynamic)
+        layout = "(x, y, θ)" if scene.dimension == 2 else "(x, y, z, qw, qx, qy, qz)"
+        what = (
+            f"(*B, {num_dynamic}, {pose}): batch, then the dynamic bodies ({names}), then {layout}"
+        )
+        q = check_float("q", q, trailing=(num_dynamic, pose), min_ndim=2, what=what)
         batch = q.shape[:-2]
         if v is None:
-            v = torch.zeros_like(q)
-        v = check_batched("v", v, shape=q.shape, like=q, like_name="q")
+            v = q.new_zeros(*batch, num_dynamic, twist)
+        v = check_batched("v", v, shape=(*batch, num_dynamic, twist), like=q, like_name="q")
         if q_kinematic is None:
             if num_kinematic:
-                raise ValueError(f"q_kinematic of shape (*B, {num_kinematic}, 3) is required")
-            q_kinematic = torch.zeros(*batch, 0, 3, dtype=q.dtype, device=q.device)
+                raise ValueError(f"q_kinematic of shape (*B, {num_kinematic}, {pose}) is required")
+            q_kinematic = q.new_zeros(*batch, 0, pose)
         q_kinematic = check_batched(
-            "q_kinematic", q_kinematic, shape=(*batch, num_kinematic, 3), like=q, like_name="q"
+            "q_kinematic", q_kinematic, shape=(*batch, num_kinematic, pose), like=q, like_name="q"
         )
-        mode = torch.zeros(*batch, self.scene.num_slots, dtype=torch.long)
+        if scene.dimension == 3:
+            for name, value in (("q", q), ("q_kinematic", q_kinematic)):
+                check_unit_rows(f"{name}[..., 3:] (quaternions)", value[..., 3:])
+        mode = torch.zeros(*batch, scene.num_slots, dtype=torch.long)
         return SceneState(q=q, v=v, q_kinematic=q_kinematic, mode=mode)
 
     def step(
@@ -203,8 +222,10 @@ class Simulator:
 
         Args:
             state: the batched state ``*B``.
-            control: ``(*B, Nk, 3)`` kinematic-body twists over the step (world frame).
-            force: ``(*B, Nd, 3)`` applied generalized forces on dynamic bodies.
+            control: ``(*B, Nk, 3)`` (planar) or ``(*B, Nk, 6)`` (spatial) kinematic-body
+                twists over the step (world frame).
+            force: ``(*B, Nd, 3)`` or ``(*B, Nd, 6)`` applied generalized forces on dynamic
+                bodies.
             friction: ``(*B, K)`` per-slot friction overriding the scene's, ``>= 0``.
 
         Returns:
@@ -218,13 +239,18 @@ class Simulator:
             raise ValueError(f"state must be a SceneState, got {type(state).__name__}")
         batch, K = state.batch_shape, self.scene.num_slots
         num_dynamic, num_kinematic = len(self.scene.dynamic), len(self.scene.kinematic)
+        twist = self.scene.twist_size
         if control is not None:
             check_batched(
-                "control", control, shape=(*batch, num_kinematic, 3), like=state.q, like_name="q"
+                "control",
+                control,
+                shape=(*batch, num_kinematic, twist),
+                like=state.q,
+                like_name="q",
             )
         if force is not None:
             check_batched(
-                "force", force, shape=(*batch, num_dynamic, 3), like=state.q, like_name="q"
+                "force", force, shape=(*batch, num_dynamic, twist), like=state.q, like_name="q"
             )
         if friction is not None:
             check_batched("friction", friction, shape=(*batch, K), like=state.q, like_name="q")
@@ -232,13 +258,17 @@ class Simulator:
                 raise ValueError(f"friction must be >= 0, got minimum {float(friction.min())}")
         solution, solver, geometry = self._step_compacted(state, control, force, friction)
         h = self.scene.h
-        v_next = solution.v_next.unflatten(-1, (len(self.scene.dynamic), 3))
+        v_next = solution.v_next.unflatten(-1, (num_dynamic, twist))
         q_kinematic = state.q_kinematic
-        if control is not None:
-            q_kinematic = q_kinematic + h * control
-        next_state = SceneState(
-            q=state.q + h * v_next, v=v_next, q_kinematic=q_kinematic, mode=solution.mode
-        )
+        if self.scene.dimension == 2:
+            q_next = state.q + h * v_next
+            if control is not None:
+                q_kinematic = q_kinematic + h * control
+        else:
+            q_next = integrate_poses(state.q, v_next, h)
+            if control is not None:
+                q_kinematic = integrate_poses(q_kinematic, control, h)
+        next_state = SceneState(q=q_next, v=v_next, q_kinematic=q_kinematic, mode=solution.mode)
         return StepResult(
             state=next_state,
             pn=solution.pn,
@@ -263,8 +293,10 @@ class Simulator:
         Args:
             state: initial state, batch ``*B``.
             steps: number of steps ``T``.
-            controls: ``(T, *B, Nk, 3)`` kinematic-body twists per step, or ``None``.
-            forces: ``(T, *B, Nd, 3)`` applied generalized forces per step, or ``None``.
+            controls: ``(T, *B, Nk, 3)`` (planar) or ``(T, *B, Nk, 6)`` (spatial)
+                kinematic-body twists per step, or ``None``.
+            forces: ``(T, *B, Nd, 3)`` or ``(T, *B, Nd, 6)`` applied generalized forces per
+                step, or ``None``.
             strict: raise ``RuntimeError`` if some entry could not be solved.
 
         Returns:
@@ -287,7 +319,11 @@ class Simulator:
         ):
             if value is not None:
                 check_batched(
-                    name, value, shape=(steps, *batch, count, 3), like=state.q, like_name="q"
+                    name,
+                    value,
+                    shape=(steps, *batch, count, self.scene.twist_size),
+                    like=state.q,
+                    like_name="q",
                 )
         if steps == 0:
             return self._empty_rollout(state)
@@ -328,10 +364,10 @@ class Simulator:
             v=state.v.unsqueeze(0),
             q_kinematic=state.q_kinematic.unsqueeze(0),
             pn=empty(K),
-            pt=empty(K, 2),
+            pt=empty(K, 2 if self.scene.dimension == 2 else self.scene.friction_directions),
             mode=empty(K, dtype=torch.long),
-            points=empty(K, 2),
-            normals=empty(K, 2),
+            points=empty(K, self.scene.dimension),
+            normals=empty(K, self.scene.dimension),
             active=empty(K, dtype=torch.bool),
             solver=empty(dtype=torch.long),
         )
@@ -352,11 +388,12 @@ class Simulator:
         """
         batch, K, h = state.batch_shape, self.scene.num_slots, self.scene.h
         P, Nd, Nk = math.prod(batch), len(self.scene.dynamic), len(self.scene.kinematic)
+        pose, twist, d = self.scene.pose_size, self.scene.twist_size, self.scene.dimension
 
         def flat(t: Tensor | None) -> Tensor | None:
             return None if t is None else t.reshape(P, *t.shape[len(batch) :])
 
-        q, q_kinematic = state.q.reshape(P, Nd, 3), state.q_kinematic.reshape(P, Nk, 3)
+        q, q_kinematic = state.q.reshape(P, Nd, pose), state.q_kinematic.reshape(P, Nk, pose)
         slots = slot_state(self.scene, q, q_kinematic, flat(control))
         geometry = slots.geometry
         mask = geometry.active
@@ -371,7 +408,7 @@ class Simulator:
         problem = assemble(
             self.scene,
             slots,
-            state.v.reshape(P, Nd, 3),
+            state.v.reshape(P, Nd, twist),
             keep,
             force=flat(force),
             friction=flat(friction),
@@ -386,15 +423,15 @@ class Simulator:
 
         full = replace(
             solution,
-            v_next=solution.v_next.reshape(*batch, 3 * Nd),
+            v_next=solution.v_next.reshape(*batch, twist * Nd),
             pn=scatter(solution.pn),
             pt=scatter(solution.pt),
             mode=scatter(solution.mode),
             status=solution.status.map_tensors(lambda t: t.reshape(batch)),
         )
         geometry = SlotGeometry(
-            points=geometry.points.reshape(*batch, K, 2),
-            normals=geometry.normals.reshape(*batch, K, 2),
+            points=geometry.points.reshape(*batch, K, d),
+            normals=geometry.normals.reshape(*batch, K, d),
             phi=geometry.phi.reshape(*batch, K),
             active=mask.reshape(*batch, K),
         )
