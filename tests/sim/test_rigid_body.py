@@ -10,10 +10,10 @@ import torch
 from torchcontact.geometry import quat_exp, quat_mul, quat_to_matrix
 from torchcontact.sim import (
     free_angular_velocity,
-    tangent_directions,
     integrate_poses,
     spatial_mass_matrix,
     tangent_basis,
+    tangent_directions,
 )
 
 

@@ -136,8 +136,6 @@ def test_scene_validation() -> None:
     ground = Body("ground", HalfSpace.ground(), kind="static")
     with pytest.raises(ValueError, match="all planar or all spatial"):
         Scene(bodies=(ground, Body("box", Polygon.box(1.0, 0.5), mass=1.0)))
-    with pytest.raises(ValueError, match="no contact routine"):
-        Scene(bodies=(Body("a", Sphere(0.1)), Body("b", Sphere(0.1))))
     with pytest.raises(ValueError, match="gravity"):
         Scene(bodies=(ground, Body("ball", Sphere(0.1))), gravity=(0.0, -9.81))
     with pytest.raises(ValueError, match="friction_directions"):

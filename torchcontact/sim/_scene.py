@@ -170,8 +170,7 @@ class Scene:
     polygon pair contributes a slot for every vertex of each against the other, a
     polygon–half-plane pair one slot per polygon vertex. Spatial: a pair contributes the
     fixed number of slots of its shape types
-    (:data:`~torchcontact.geometry.SPATIAL_SLOT_COUNTS`; a pair of types without a contact
-    routine, such as two spheres, is a ``ValueError``), with ``friction_directions``
+    (:data:`~torchcontact.geometry.SPATIAL_SLOT_COUNTS`), with ``friction_directions``
     directions per contact.
 
     The polyhedral friction cone of ``D`` directions is inscribed in Coulomb's circular cone:
@@ -230,11 +229,6 @@ class Scene:
         names_of_axes = "(gx, gy)" if dimension == 2 else "(gx, gy, gz)"
         if not isinstance(self.gravity, tuple) or len(self.gravity) != dimension:
             raise ValueError(f"gravity must be a tuple {names_of_axes}, got {self.gravity!r}")
-        if dimension == 3:
-            for i, a in enumerate(self.bodies):
-                for b in self.bodies[i + 1 :]:
-                    if "dynamic" in (a.kind, b.kind):
-                        _spatial_slot_count(a, b)
         check_int("friction_directions", self.friction_directions, low=4)
         if self.friction_directions % 2:
             raise ValueError(f"friction_directions must be even, got {self.friction_directions}")
@@ -385,19 +379,10 @@ class Scene:
 
 
 def _spatial_slot_count(a: Body, b: Body) -> int:
-    """Slots of the contact routine between two spatial bodies' shapes.
-
-    Raises:
-        ValueError: no routine handles the pair (e.g. two spheres).
-    """
+    """Slots of the contact routine between two spatial bodies' shapes (every pair of types
+    that can touch has one)."""
     kinds = (type(a.shape).__name__, type(b.shape).__name__)
-    count = SPATIAL_SLOT_COUNTS.get(kinds, SPATIAL_SLOT_COUNTS.get(kinds[::-1]))
-    if count is None:
-        raise ValueError(
-            f"bodies: no contact routine between {a.name!r} ({kinds[0]}) and {b.name!r} "
-            f"({kinds[1]}); supported: {sorted(SPATIAL_SLOT_COUNTS)}"
-        )
-    return count
+    return SPATIAL_SLOT_COUNTS.get(kinds) or SPATIAL_SLOT_COUNTS[kinds[::-1]]
 
 
 def _check_friction(name: str, value: object) -> None:
