@@ -21,8 +21,10 @@ from torchcontact.contact._lcp import (
     delassus,
     friction_direction,
     is_consistent,
+    is_face_sliding,
     is_sliding,
     lcp_residual,
+    num_modes,
     relative_residual,
 )
 from torchcontact.contact._lemke import LemkeOutcome, LemkeResult, lemke, solve_lemke
@@ -64,10 +66,12 @@ __all__ = [
     "friction_direction",
     "friction_split_weights",
     "is_consistent",
+    "is_face_sliding",
     "is_sliding",
     "iterated_tikhonov",
     "lcp_residual",
     "lemke",
+    "num_modes",
     "planar_box_problem",
     "project_capped_simplex",
     "relative_residual",
