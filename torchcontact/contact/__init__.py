@@ -8,6 +8,13 @@ mode known, by one differentiable linear solve (:func:`solve_mode`). That solve'
 (``SOLVE_MODE_REFINEMENTS``, ``SOLVE_MODE_WEIGHTED_REFINEMENTS``,
 ``SOLVE_MODE_FRICTION_COST``, ``SOLVE_MODE_MIN_LOAD_SHARE``) are exported for the code that
 differentiates it in closed form, the filters' per-mode linearization.
+
+The contact mode of a slot is an integer: ``SEPARATED`` (0), ``STICKING`` (1), ``SLIDING + d``
+(sliding with the friction impulse along friction direction ``d``, an edge of the friction
+cone) and, when spatial (``D >= 4``), ``SLIDING + D + d`` (sliding with it on the face between
+directions ``d`` and ``(d + 1) mod D``), so that every solution of the LCP has a mode that
+:func:`solve_mode` reproduces and :func:`is_consistent` accepts. Planar problems have the
+codes 0–3 only (:func:`num_modes`).
 """
 
 from torchcontact.contact._active_set import solve_active_set, update_mode

@@ -204,13 +204,18 @@ def solve_mode_unchecked(
     v_next = v_free + (Minv_GT @ x.unsqueeze(-1)).squeeze(-1)
     pn = x[..., :K]
     tangential = x[..., K:].unflatten(-1, (K, r))
-    # A sliding slot's friction: μ pn / 2 + λ on its first direction, μ pn / 2 − λ on its
-    # second (λ = 0 and both halves on d for an edge).
-    half = 0.5 * slide_mu * pn
-    face_lambda = torch.where(face, tangential[..., 0], torch.zeros_like(half))
+    # A sliding slot's friction: μ pn along its direction on an edge; on a face, μ pn / 2 + λ
+    # on its first direction and μ pn / 2 − λ on its second.
     one_hot = torch.nn.functional.one_hot
-    pt_slide = one_hot(first, D).to(problem.dtype) * (half + face_lambda).unsqueeze(-1)
-    pt_slide = pt_slide + one_hot(second, D).to(problem.dtype) * (half - face_lambda).unsqueeze(-1)
+    if D > 2:
+        half = 0.5 * slide_mu * pn
+        face_lambda = torch.where(face, tangential[..., 0], torch.zeros_like(half))
+        pt_slide = one_hot(first, D).to(problem.dtype) * (half + face_lambda).unsqueeze(-1)
+        pt_slide = pt_slide + one_hot(second, D).to(problem.dtype) * (half - face_lambda).unsqueeze(
+            -1
+        )
+    else:
+        pt_slide = one_hot(first, D).to(problem.dtype) * (slide_mu * pn).unsqueeze(-1)
     pt_stick = _bracket_decomposition(Jt, tangential, sticking)
     pt = torch.where(sticking.unsqueeze(-1), pt_stick, pt_slide)
 
