@@ -176,12 +176,12 @@ def test_mode_helpers_name_the_friction_direction_against_the_slip() -> None:
     friction acts along −x)."""
     modes = torch.tensor([SEPARATED, STICKING, SLIDING, SLIDING + 1])
     assert is_sliding(modes).tolist() == [False, False, True, True]
-    assert friction_direction(modes).tolist() == [-1, -1, 0, 1]
+    assert friction_direction(modes, num_directions=2).tolist() == [-1, -1, 0, 1]
     q, v = resting_state()
     v[0] = 0.5
     problem = box_problem(q=q, v=v, mu=0.4, h=H)
     solution = _solve_checked(problem, "lemke")
-    direction = friction_direction(solution.mode)
+    direction = friction_direction(solution.mode, num_directions=2)
     assert bool(is_sliding(solution.mode).all())
     rows = problem.Jt[torch.arange(2), direction]  # (2, n): each corner's friction row
     slip = rows @ solution.v_next

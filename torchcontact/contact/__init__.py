@@ -8,6 +8,13 @@ mode known, by one differentiable linear solve (:func:`solve_mode`). That solve'
 (``SOLVE_MODE_REFINEMENTS``, ``SOLVE_MODE_WEIGHTED_REFINEMENTS``,
 ``SOLVE_MODE_FRICTION_COST``, ``SOLVE_MODE_MIN_LOAD_SHARE``) are exported for the code that
 differentiates it in closed form, the filters' per-mode linearization.
+
+The contact mode of a slot is an integer: ``SEPARATED`` (0), ``STICKING`` (1), ``SLIDING + d``
+(sliding with the friction impulse along friction direction ``d``, an edge of the friction
+cone) and, when spatial (``D >= 4``), ``SLIDING + D + d`` (sliding with it on the face between
+directions ``d`` and ``(d + 1) mod D``), so that every solution of the LCP has a mode that
+:func:`solve_mode` reproduces and :func:`is_consistent` accepts. Planar problems have the
+codes 0–3 only (:func:`num_modes`).
 """
 
 from torchcontact.contact._active_set import solve_active_set, update_mode
@@ -21,8 +28,10 @@ from torchcontact.contact._lcp import (
     delassus,
     friction_direction,
     is_consistent,
+    is_face_sliding,
     is_sliding,
     lcp_residual,
+    num_modes,
     relative_residual,
 )
 from torchcontact.contact._lemke import LemkeOutcome, LemkeResult, lemke, solve_lemke
@@ -64,10 +73,12 @@ __all__ = [
     "friction_direction",
     "friction_split_weights",
     "is_consistent",
+    "is_face_sliding",
     "is_sliding",
     "iterated_tikhonov",
     "lcp_residual",
     "lemke",
+    "num_modes",
     "planar_box_problem",
     "project_capped_simplex",
     "relative_residual",

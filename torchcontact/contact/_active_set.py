@@ -11,7 +11,8 @@ from torchcontact.contact._lcp import (
     STICKING,
     consistent_with_mode,
     default_tolerance,
-    friction_direction,
+    friction_pair,
+    is_face_sliding,
     is_sliding,
     velocity_terms,
 )
@@ -26,8 +27,11 @@ def update_mode(problem: ContactProblem, solution: Solution) -> Tensor:
     Each slot whose solution violates its own mode switches to the mode that removes the
     violation: a separated slot that penetrates (gap rate < 0) starts sticking; an active slot
     that pulls (``pn < 0``) separates; a sticking slot whose friction leaves the cone slides
-    with its friction along the direction that carried it; a sliding slot whose slip turned
-    along its friction starts sticking.
+    with its friction where it was (on the face of the two directions that carried it, or
+    along the one direction); a sliding slot whose slip turned along its friction starts
+    sticking. When spatial, a slot sliding along an edge ``d`` whose slip is more opposed to
+    a neighbouring direction moves to the face between the two, and a slot sliding on a face
+    whose friction turned negative along one of its directions slides along the other.
 
     Args:
         problem: the contact problem.
@@ -37,19 +41,43 @@ def update_mode(problem: ContactProblem, solution: Solution) -> Tensor:
         ``(*B, K)`` long corrected modes.
     """
     tol = 10 * default_tolerance(problem.dtype)
+    D = problem.num_directions
     gap_rate, slip = velocity_terms(problem, solution.v_next)
     mode, pn, pt = solution.mode, solution.pn, solution.pt
     scale_v = 1.0 + gap_rate.abs().amax(dim=-1, keepdim=True)
     scale_p = 1.0 + pn.abs().amax(dim=-1, keepdim=True)
-    direction = friction_direction(mode).clamp(min=0)
-    slip_d = slip.gather(-1, direction.unsqueeze(-1)).squeeze(-1)
+    first, second = friction_pair(mode, num_directions=D)
+    slip_first = slip.gather(-1, first.unsqueeze(-1)).squeeze(-1)
+    largest = pt.argmax(dim=-1)
 
     penetrates = (mode == SEPARATED) & (gap_rate < -tol * scale_v)
     pulls = (mode >= STICKING) & (pn < -tol * scale_p)
     outside_cone = (mode == STICKING) & (pt.sum(-1) > problem.mu * pn + tol * scale_p)
-    reverses = is_sliding(mode) & (slip_d > tol * scale_v)
+    reverses = is_sliding(mode) & (slip_first > tol * scale_v)
+    leaving = SLIDING + largest
     updated = torch.where(penetrates, STICKING, mode)
-    updated = torch.where(outside_cone, SLIDING + pt.argmax(dim=-1), updated)
+    if D > 2:
+        # Sticking friction is written on two adjacent directions: keep it on their face.
+        beside = torch.stack([(largest - 1) % D, (largest + 1) % D], dim=-1)
+        pt_beside = pt.gather(-1, beside)
+        neighbour = pt_beside.argmax(dim=-1)
+        carried = pt_beside.amax(dim=-1) > tol * scale_p
+        face_start = torch.where(neighbour == 0, beside[..., 0], largest)
+        leaving = torch.where(carried, SLIDING + D + face_start, leaving)
+        # An edge whose slip opposes a neighbour more: the face towards that neighbour.
+        edge = is_sliding(mode) & ~is_face_sliding(mode, num_directions=D)
+        slip_beside = slip.gather(-1, torch.stack([(first - 1) % D, (first + 1) % D], dim=-1))
+        towards = slip_beside.argmin(dim=-1)
+        turned = edge & (slip_beside.amin(dim=-1) < slip_first - tol * scale_v)
+        face_start = torch.where(towards == 0, (first - 1) % D, first)
+        updated = torch.where(turned, SLIDING + D + face_start, updated)
+        # A face whose friction is negative along one direction: the edge of the other.
+        face = is_face_sliding(mode, num_directions=D)
+        pt_pair = pt.gather(-1, torch.stack([first, second], dim=-1))
+        negative = face & (pt_pair.amin(dim=-1) < -tol * scale_p)
+        other = torch.where(pt_pair[..., 0] < pt_pair[..., 1], second, first)
+        updated = torch.where(negative, SLIDING + other, updated)
+    updated = torch.where(outside_cone, leaving, updated)
     updated = torch.where(reverses, STICKING, updated)
     updated = torch.where(pulls, SEPARATED, updated)
     return torch.where(problem.slot_mask, updated, SEPARATED)

@@ -13,23 +13,69 @@ from torchcontact.contact._solution import Solution
 SEPARATED = 0
 #: Mode of a slot whose contact point does not slide.
 STICKING = 1
-#: Mode ``SLIDING + d``: the slot slides with its friction impulse along direction ``d``
-#: (every mode ``>= SLIDING`` slides: test with :func:`is_sliding`, not ``== SLIDING``).
+#: First sliding code. Mode ``SLIDING + d`` slides with the friction impulse along direction
+#: ``d`` (an edge of the friction cone); when spatial (``D >= 4``), mode ``SLIDING + D + d``
+#: slides with it on the face between directions ``d`` and ``(d + 1) mod D``. Every mode
+#: ``>= SLIDING`` slides: test with :func:`is_sliding`, not ``== SLIDING``.
 SLIDING = 2
 
 
+def num_modes(num_directions: int) -> int:
+    """Number of slot modes of a problem with ``D = num_directions`` friction directions.
+
+    ``2 + D`` when planar (``D == 2``: separated, sticking, sliding along ``+t`` or ``−t``) and
+    ``2 + 2D`` when spatial (``D >= 4``: separated, sticking, ``D`` edges and ``D`` faces of the
+    friction cone); the modes are the integers ``0 … num_modes − 1``.
+    """
+    return SLIDING + (num_directions if num_directions == 2 else 2 * num_directions)
+
+
 def is_sliding(mode: Tensor) -> Tensor:
-    """``mode``'s slots that slide, in any direction (``mode >= SLIDING``), as bool."""
+    """``mode``'s slots that slide, along an edge or a face (``mode >= SLIDING``), as bool."""
     return mode >= SLIDING
 
 
-def friction_direction(mode: Tensor) -> Tensor:
-    """The friction direction ``d`` of sliding slots (mode ``SLIDING + d``), ``-1`` elsewhere.
+def is_face_sliding(mode: Tensor, *, num_directions: int) -> Tensor:
+    """``mode``'s slots that slide on a face of the friction cone (``mode >= SLIDING + D``).
 
-    The friction impulse acts along direction ``d``, against the slip: a planar slot in mode
-    ``SLIDING + 1`` has its friction along ``−t`` and slides along ``+t``.
+    Always ``False`` when planar (``D == 2``), where no such mode exists.
+
+    Args:
+        mode: ``(*B, K)`` long modes.
+        num_directions: ``D``, the problem's number of friction directions.
     """
-    return torch.where(is_sliding(mode), mode - SLIDING, -1)
+    return mode >= SLIDING + num_directions
+
+
+def friction_direction(mode: Tensor, *, num_directions: int) -> Tensor:
+    """The first friction direction that carries a sliding slot's friction, ``-1`` elsewhere.
+
+    ``d`` for an edge mode ``SLIDING + d`` and for a face mode ``SLIDING + D + d``, whose
+    friction impulse lies between directions ``d`` and ``(d + 1) mod D`` (tell the two apart
+    with :func:`is_face_sliding`). The friction impulse acts against the slip: a planar slot in
+    mode ``SLIDING + 1`` has its friction along ``−t`` and slides along ``+t``.
+
+    Args:
+        mode: ``(*B, K)`` long modes.
+        num_directions: ``D``, the problem's number of friction directions.
+
+    Returns:
+        ``(*B, K)`` long directions in ``[0, D)``, or ``-1`` where the slot does not slide.
+    """
+    return torch.where(is_sliding(mode), (mode - SLIDING) % num_directions, -1)
+
+
+def friction_pair(mode: Tensor, *, num_directions: int) -> tuple[Tensor, Tensor]:
+    """The two friction directions that carry each slot's sliding friction (clamped at 0).
+
+    Returns:
+        ``first, second (*B, K)`` long: ``d`` and ``(d + 1) mod D`` for a face mode, ``d``
+        twice for an edge mode, ``0`` twice where the slot does not slide.
+    """
+    first = friction_direction(mode, num_directions=num_directions).clamp(min=0)
+    face = is_face_sliding(mode, num_directions=num_directions)
+    second = torch.where(face, (first + 1) % num_directions, first)
+    return first, second
 
 
 def default_tolerance(dtype: torch.dtype) -> float:
@@ -219,27 +265,42 @@ def contact_mode(
     """Read the contact mode of each slot off a solution.
 
     A slot is separated when its normal impulse is zero (within tolerance), sticking when it
-    carries an impulse and its contact point does not slide, and otherwise sliding along the
-    friction direction most opposed to its slip (the direction that carries its friction).
+    carries an impulse and its contact point does not slide, and otherwise sliding: along the
+    friction direction ``d`` most opposed to its slip (the direction that carries its
+    friction), or, when spatial and a direction adjacent to ``d`` carries friction too, on the
+    face between the two (at a solution, the slip is then equally opposed to both).
 
     Args:
         problem: the contact problem.
         v_next: ``(*B, n)`` end-of-step velocity.
         pn: ``(*B, K)`` normal impulses.
         pt: ``(*B, K, D)`` friction impulses (their size enters the impulse scale of
-            :func:`problem_scales`); default zeros.
+            :func:`problem_scales`, and they tell faces from edges); default zeros.
         atol: relative tolerance; default :func:`default_tolerance` of the dtype times 10.
 
     Returns:
-        ``(*B, K)`` long modes (0 separated, 1 sticking, ``2 + d`` sliding along ``d``).
+        ``(*B, K)`` long modes (0 separated, 1 sticking, ``2 + d`` sliding along ``d``,
+        ``2 + D + d`` sliding on the face between ``d`` and ``(d + 1) mod D``).
     """
     tol = 10 * default_tolerance(problem.dtype) if atol is None else atol
     pt = torch.zeros_like(problem.b_tangent) if pt is None else pt
+    D = problem.num_directions
     velocity_scale, impulse_scale = problem_scales(problem, v_next=v_next, pn=pn, pt=pt)
     _, slip = velocity_terms(problem, v_next)
     active = problem.slot_mask & (pn > tol * impulse_scale)
     sticking = slip.abs().amax(dim=-1) <= tol * velocity_scale
-    sliding_mode = SLIDING + slip.argmin(dim=-1)
+    direction = slip.argmin(dim=-1)
+    sliding_mode = SLIDING + direction
+    if D > 2:
+        # A neighbour of the most opposed direction that carries friction makes it a face.
+        previous = (direction - 1) % D
+        pt_next = pt.gather(-1, ((direction + 1) % D).unsqueeze(-1)).squeeze(-1)
+        pt_previous = pt.gather(-1, previous.unsqueeze(-1)).squeeze(-1)
+        carried = tol * impulse_scale
+        next_face = (pt_next > carried) & (pt_next >= pt_previous)
+        previous_face = (pt_previous > carried) & ~next_face
+        sliding_mode = torch.where(next_face, SLIDING + D + direction, sliding_mode)
+        sliding_mode = torch.where(previous_face, SLIDING + D + previous, sliding_mode)
     mode = torch.where(sticking, torch.full_like(sliding_mode, STICKING), sliding_mode)
     return torch.where(active, mode, torch.zeros_like(mode))
 
@@ -251,9 +312,10 @@ def is_consistent(
 
     For every real slot: impulses are non-negative; a separated slot carries no impulse and
     does not penetrate (gap rate ≥ 0); an active slot has zero gap rate; a sticking slot has
-    zero slip and its friction inside the polyhedral cone (Σ_d pt_d ≤ μ pn); a slot sliding
-    along ``d`` has Σ_d pt_d = μ pn carried by direction ``d``, and slips against ``d``
-    (``Jt_d v⁺ + bt_d ≤ 0``) at least as fast as along any other direction. Padding slots
+    zero slip and its friction inside the polyhedral cone (Σ_d pt_d ≤ μ pn); a sliding slot
+    has Σ_d pt_d = μ pn carried by its direction ``d`` (edge mode) or by ``d`` and
+    ``(d + 1) mod D`` (face mode), and slips against them (``Jt_d v⁺ + bt_d ≤ 0``) at least as
+    fast as along any other direction (on a face, equally fast against both). Padding slots
     carry no impulse. Tolerances are relative to the problem's velocity and impulse scales.
 
     Args:
@@ -309,9 +371,13 @@ def consistent_with_mode(
     gap_rate, slip = velocity_terms(problem, v_next)
     friction_total = pt.sum(dim=-1)
     mu_pn = problem.mu * pn
-    direction = friction_direction(mode).clamp(min=0).expand(pn.shape)
-    slip_d = slip.gather(-1, direction.unsqueeze(-1)).squeeze(-1)
-    pt_d = pt.gather(-1, direction.unsqueeze(-1)).squeeze(-1)
+    mode = mode.expand(pn.shape)
+    # The directions that carry a sliding slot's friction: d twice (edge) or d, d + 1 (face).
+    pair = torch.stack(friction_pair(mode, num_directions=problem.num_directions), dim=-1)
+    face = is_face_sliding(mode, num_directions=problem.num_directions)
+    slip_pair = slip.gather(-1, pair)
+    pt_pair = pt.gather(-1, pair)
+    pt_carried = pt_pair[..., 0] + torch.where(face, pt_pair[..., 1], 0.0)
 
     nonnegative = (pn >= -p_tol) & (pt >= -p_tol_d).all(dim=-1)
     no_impulse = (pn.abs() <= p_tol) & (pt.abs() <= p_tol_d).all(dim=-1)
@@ -320,8 +386,10 @@ def consistent_with_mode(
     sticking_ok = closed & (slip.abs() <= v_tol.unsqueeze(-1)).all(dim=-1)
     sticking_ok = sticking_ok & (friction_total <= mu_pn + p_tol)
     sliding_ok = closed & ((friction_total - mu_pn).abs() <= p_tol)
-    sliding_ok = sliding_ok & ((pt_d - friction_total).abs() <= p_tol)
-    sliding_ok = sliding_ok & (slip_d <= v_tol) & (slip_d <= slip.amin(dim=-1) + v_tol)
+    sliding_ok = sliding_ok & ((pt_carried - friction_total).abs() <= p_tol)
+    least_slip = slip.amin(dim=-1, keepdim=True) + v_tol.unsqueeze(-1)
+    against = (slip_pair <= v_tol.unsqueeze(-1)) & (slip_pair <= least_slip)
+    sliding_ok = sliding_ok & against.all(dim=-1)
     per_slot = torch.where(
         mode == SEPARATED,
         separated_ok,
@@ -355,5 +423,5 @@ def check_solution(problem: object, solution: object) -> None:
         raise ValueError(
             f"solution.mode must be a long tensor of shape {(*batch, K)}, got {describe(mode)}"
         )
-    if mode.numel() and (int(mode.min()) < 0 or int(mode.max()) >= SLIDING + D):
-        raise ValueError(f"solution.mode values must lie in [0, {SLIDING + D})")
+    if mode.numel() and (int(mode.min()) < 0 or int(mode.max()) >= num_modes(D)):
+        raise ValueError(f"solution.mode values must lie in [0, {num_modes(D)}) for D = {D}")

@@ -7,12 +7,13 @@ from torch import Tensor
 
 from torchcontact._checks import check_tensor
 from torchcontact.contact._lcp import (
-    SLIDING,
     STICKING,
     default_tolerance,
-    friction_direction,
+    friction_pair,
+    is_face_sliding,
     is_sliding,
     lcp_residual,
+    num_modes,
 )
 from torchcontact.contact._problem import ContactProblem
 from torchcontact.contact._solution import Solution, SolveStatus
@@ -33,7 +34,8 @@ def validate_mode(problem: ContactProblem, mode: Tensor) -> Tensor:
 
     Raises:
         ValueError: naming ``mode`` if it is not an integer tensor, does not broadcast to the
-            problem's ``(*B, K)`` or holds values outside ``[0, 2 + D)``.
+            problem's ``(*B, K)`` or holds values outside ``[0, num_modes(D))`` (``[0, 4)``
+            planar, ``[0, 2 + 2D)`` spatial).
     """
     if not isinstance(mode, Tensor) or mode.is_floating_point() or mode.dtype == torch.bool:
         raise ValueError("mode must be an integer tensor of shape (*B, K)")
@@ -42,10 +44,9 @@ def validate_mode(problem: ContactProblem, mode: Tensor) -> Tensor:
         mode = mode.to(device=problem.device, dtype=torch.long).expand(shape)
     except RuntimeError as error:
         raise ValueError(f"mode has shape {tuple(mode.shape)}; expected {shape}") from error
-    if mode.numel() and (
-        int(mode.min()) < 0 or int(mode.max()) >= SLIDING + problem.num_directions
-    ):
-        raise ValueError(f"mode values must lie in [0, {SLIDING + problem.num_directions})")
+    D = problem.num_directions
+    if mode.numel() and (int(mode.min()) < 0 or int(mode.max()) >= num_modes(D)):
+        raise ValueError(f"mode values must lie in [0, {num_modes(D)}) for D = {D}")
     return mode
 
 
@@ -64,11 +65,20 @@ def solve_mode(
     * sticking (1): ``Jn_k v⁺ + bn_k + φ_k/h = 0`` and ``Jt_{k,j} v⁺ + bt_{k,j} = 0`` for a
       basis ``j`` of the tangent space (direction 0; directions 0 and 1 when spatial), with
       free tangential impulse ``λ_k`` along that basis;
-    * sliding along ``d`` (``2 + d``): ``Jn_k v⁺ + bn_k + φ_k/h = 0`` and the friction
-      impulse is ``μ_k pn_k`` along direction ``d``.
+    * sliding along ``d`` (``2 + d``, an edge of the friction cone): ``Jn_k v⁺ + bn_k + φ_k/h
+      = 0`` and the friction impulse is ``μ_k pn_k`` along direction ``d``;
+    * sliding on the face between ``d`` and ``e = (d + 1) mod D`` (``2 + D + d``, spatial
+      only): both friction rows are active, ``Jt_{k,d} v⁺ + bt_{k,d} + σ_k = 0 =
+      Jt_{k,e} v⁺ + bt_{k,e} + σ_k``, and so is the cone row, ``pt_{k,d} + pt_{k,e} = μ_k
+      pn_k``. Eliminating the sliding speed ``σ_k`` leaves ``Jn_k v⁺ + bn_k + φ_k/h = 0`` and
+      ``(Jt_{k,d} − Jt_{k,e}) v⁺ + bt_{k,d} − bt_{k,e} = 0`` (the slip lies in the normal cone
+      of the face), with friction ``pt_{k,d} = μ_k pn_k / 2 + λ_k``, ``pt_{k,e} = μ_k pn_k / 2
+      − λ_k`` for a free ``λ_k``. ``σ_k ≥ 0`` and ``pt ≥ 0`` are left to
+      :func:`is_consistent`.
 
     Eliminating ``v⁺ = v_free + M⁻¹ Gᵀ x`` (``x`` the unknown impulses, ``G`` the rows along
-    which they act: ``Jn_k + μ_k Jt_{k,d}`` for sliding slots) leaves the Schur system
+    which they act: ``Jn_k + μ_k (Jt_{k,d} + Jt_{k,e}) / 2`` for sliding slots, ``e = d`` on
+    an edge, and ``Jt_{k,d} − Jt_{k,e}`` for the ``λ_k`` of a face) leaves the Schur system
     ``C M⁻¹ Gᵀ x = r`` on the active rows ``C``. Redundant contacts (a box resting on
     two corners with identical friction rows, four coplanar corners in 3-D) make it singular
     but consistent: the end velocity is unique while the impulse split is not. The system is
@@ -123,7 +133,7 @@ def solve_mode_unchecked(
 
     Args:
         problem: the contact problem, batch ``*B``.
-        mode: ``(*B, K)`` long modes in ``[0, 2 + D)``.
+        mode: ``(*B, K)`` long modes in ``[0, num_modes(D))``.
         initial_impulses: as for :func:`solve_mode`.
         sync_free: never synchronise with the host (as :func:`torch.compile` wants it): the
             weighted friction split runs on every problem of the batch and is kept where the
@@ -139,23 +149,37 @@ def solve_mode_unchecked(
     active = mode >= STICKING
     sticking = mode == STICKING
     sliding = is_sliding(mode)
-    direction = friction_direction(mode).clamp(min=0)
-    Jt_d = Jt.gather(-2, direction[..., None, None].expand(*batch, K, 1, n)).squeeze(-2)
+    face = is_face_sliding(mode, num_directions=D)
+    first, second = friction_pair(mode, num_directions=D)
+    Jt_first = Jt.gather(-2, first[..., None, None].expand(*batch, K, 1, n)).squeeze(-2)
     slide_mu = torch.where(sliding, mu, torch.zeros_like(mu))
-    G_normal = Jn + slide_mu.unsqueeze(-1) * Jt_d
-    J_basis = Jt[..., :r, :].flatten(-3, -2)
-    C = torch.cat([Jn, J_basis], dim=-2)
-    G = torch.cat([G_normal, J_basis], dim=-2)
-    rows_active = torch.cat([active, sticking.repeat_interleave(r, dim=-1)], dim=-1)
+    # Tangent rows of the unknowns λ (acting and constrained along the same rows): the basis
+    # when sticking; on a face, row 0 is the difference of its two directions.
+    tangent_rows = Jt[..., :r, :]
+    tangent_target = -problem.b_tangent[..., :r]
+    tangent_active = sticking.unsqueeze(-1).expand(*batch, K, r)
+    if D > 2:
+        Jt_second = Jt.gather(-2, second[..., None, None].expand(*batch, K, 1, n)).squeeze(-2)
+        G_normal = Jn + (0.5 * slide_mu).unsqueeze(-1) * (Jt_first + Jt_second)
+        on_face_row = face.unsqueeze(-1) & (torch.arange(r, device=problem.device) == 0)
+        tangent_rows = torch.where(
+            on_face_row.unsqueeze(-1), (Jt_first - Jt_second).unsqueeze(-2), tangent_rows
+        )
+        bt_pair = problem.b_tangent.gather(-1, torch.stack([first, second], dim=-1))
+        face_target = (bt_pair[..., 1] - bt_pair[..., 0]).unsqueeze(-1)
+        tangent_target = torch.where(on_face_row, face_target, tangent_target)
+        tangent_active = tangent_active | on_face_row
+    else:
+        G_normal = Jn + slide_mu.unsqueeze(-1) * Jt_first
+    J_tangent = tangent_rows.flatten(-3, -2)
+    C = torch.cat([Jn, J_tangent], dim=-2)
+    G = torch.cat([G_normal, J_tangent], dim=-2)
+    rows_active = torch.cat([active, tangent_active.flatten(-2)], dim=-1)
 
     v_free = problem.v_free()
     Minv_GT = problem.mass_solve(G.transpose(-1, -2))
     target = torch.cat(
-        [
-            -(problem.b_normal + problem.phi / problem.h),
-            -problem.b_tangent[..., :r].flatten(-2, -1),
-        ],
-        dim=-1,
+        [-(problem.b_normal + problem.phi / problem.h), tangent_target.flatten(-2)], dim=-1
     )
     rhs = target - (C @ v_free.unsqueeze(-1)).squeeze(-1)
     both = rows_active.unsqueeze(-1) & rows_active.unsqueeze(-2)
@@ -171,7 +195,7 @@ def solve_mode_unchecked(
         refinements=SOLVE_MODE_REFINEMENTS,
         start=None
         if initial_impulses is None
-        else _impulse_coordinates(Jt, initial_impulses, r, rows_active),
+        else _impulse_coordinates(Jt, initial_impulses, r, rows_active, mode),
         sync_free=sync_free,
     )
     if initial_impulses is None and K:
@@ -180,8 +204,18 @@ def solve_mode_unchecked(
     v_next = v_free + (Minv_GT @ x.unsqueeze(-1)).squeeze(-1)
     pn = x[..., :K]
     tangential = x[..., K:].unflatten(-1, (K, r))
-    pt_slide = torch.nn.functional.one_hot(direction, D).to(problem.dtype)
-    pt_slide = pt_slide * (slide_mu * pn).unsqueeze(-1)
+    # A sliding slot's friction: μ pn along its direction on an edge; on a face, μ pn / 2 + λ
+    # on its first direction and μ pn / 2 − λ on its second.
+    one_hot = torch.nn.functional.one_hot
+    if D > 2:
+        half = 0.5 * slide_mu * pn
+        face_lambda = torch.where(face, tangential[..., 0], torch.zeros_like(half))
+        pt_slide = one_hot(first, D).to(problem.dtype) * (half + face_lambda).unsqueeze(-1)
+        pt_slide = pt_slide + one_hot(second, D).to(problem.dtype) * (half - face_lambda).unsqueeze(
+            -1
+        )
+    else:
+        pt_slide = one_hot(first, D).to(problem.dtype) * (slide_mu * pn).unsqueeze(-1)
     pt_stick = _bracket_decomposition(Jt, tangential, sticking)
     pt = torch.where(sticking.unsqueeze(-1), pt_stick, pt_slide)
 
@@ -318,7 +352,7 @@ def _iterated_tikhonov(
 
 
 def _impulse_coordinates(
-    Jt: Tensor, impulses: tuple[Tensor, Tensor], r: int, rows_active: Tensor
+    Jt: Tensor, impulses: tuple[Tensor, Tensor], r: int, rows_active: Tensor, mode: Tensor
 ) -> Tensor:
     """Unknowns ``x = [pn; λ]`` of the Schur system from impulses ``(pn, pt)``.
 
@@ -327,10 +361,12 @@ def _impulse_coordinates(
         impulses: ``pn (*B, K)`` and ``pt (*B, K, D)``.
         r: tangent dimension (1 planar, 2 spatial).
         rows_active: ``(*B, K + K·r)`` rows of the system that carry unknowns.
+        mode: ``(*B, K)`` long modes.
 
     Returns:
-        ``(*B, K + K·r)``, zero on inactive rows; ``λ`` holds the friction impulse in the
-        coordinates of the tangent basis (directions ``0..r-1``).
+        ``(*B, K + K·r)``, zero on inactive rows; ``λ`` holds a sticking slot's friction
+        impulse in the coordinates of the tangent basis (directions ``0..r-1``) and, first, a
+        face-sliding slot's ``(pt_d − pt_e) / 2`` (its two directions ``d``, ``e``).
     """
     pn, pt = impulses
     D = Jt.shape[-2]
@@ -342,6 +378,13 @@ def _impulse_coordinates(
         gram = gram + torch.finfo(Jt.dtype).eps * torch.eye(2, dtype=Jt.dtype, device=Jt.device)
         coords = torch.linalg.solve(gram, basis @ Jt.transpose(-1, -2))  # (*B, K, 2, D)
         tangential = (coords @ pt.unsqueeze(-1)).squeeze(-1)
+        pt_pair = pt.gather(-1, torch.stack(friction_pair(mode, num_directions=D), dim=-1))
+        split = 0.5 * (pt_pair[..., 0] - pt_pair[..., 1])
+        face = is_face_sliding(mode, num_directions=D)
+        tangential = torch.cat(
+            [torch.where(face, split, tangential[..., 0]).unsqueeze(-1), tangential[..., 1:]],
+            dim=-1,
+        )
     x = torch.cat([pn, tangential.flatten(-2)], dim=-1).to(Jt.dtype)
     return torch.where(rows_active, x, torch.zeros((), dtype=Jt.dtype, device=Jt.device))
 

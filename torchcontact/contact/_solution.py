@@ -40,7 +40,8 @@ class Solution:
         pn: ``(*B, K)`` normal impulses over the step (zero for padding slots).
         pt: ``(*B, K, D)`` friction impulses along each friction direction, ``>= 0``.
         mode: ``(*B, K)`` long contact mode of each slot: 0 separated, 1 sticking,
-            ``2 + d`` sliding with the friction impulse along direction ``d``.
+            ``2 + d`` sliding with the friction impulse along direction ``d``, ``2 + D + d``
+            (spatial) sliding with it between directions ``d`` and ``(d + 1) mod D``.
         status: per-problem convergence and residual.
     """
 

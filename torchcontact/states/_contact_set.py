@@ -30,7 +30,7 @@ class ContactSet:
     """Contacts of one object with its partners at one time step, batched over ``*B``.
 
     The fields follow the contact solver's conventions: slot ``k`` is *active* (a contact) when
-    it is a real slot and its mode is sticking (1) or sliding (``2 + d``), i.e. it carries a
+    it is a real slot and its mode is sticking (1) or sliding (``>= 2``), i.e. it carries a
     normal impulse; mode 0 (separated) and padding slots are ignored.
 
     With ``pose`` given, ``points`` and ``normals`` are in the world frame and
@@ -45,8 +45,9 @@ class ContactSet:
         normals: ``(*B, K, d)`` unit contact normals pointing from the partner into the object,
             in the same frame as ``points`` (normalized again in :meth:`object_frame`).
         pn: ``(*B, K)`` normal impulses, ``>= 0``.
-        mode: ``(*B, K)`` long contact modes: 0 separated, 1 sticking, ``2 + d`` sliding along
-            friction direction ``d``.
+        mode: ``(*B, K)`` long contact modes: 0 separated, 1 sticking, ``>= 2`` sliding (along
+            a friction direction or, spatial, between two: the codes of
+            :mod:`torchcontact.contact`).
         partner: ``(K,)`` long partner id of each slot, an index into ``partner_kind``.
         partner_kind: kind of each partner id (strings ``"environment"`` / ``"robot"`` are
             converted to :class:`PartnerKind`).
@@ -87,7 +88,7 @@ class ContactSet:
         if mode.shape != points.shape[:-1]:
             raise ValueError(f"mode must have shape {tuple(points.shape[:-1])}, got {mode.shape}")
         if bool((mode < 0).any()):
-            raise ValueError("mode must be >= 0 (0 separated, 1 sticking, 2 + d sliding)")
+            raise ValueError("mode must be >= 0 (0 separated, 1 sticking, >= 2 sliding)")
         kinds = self._check_partners(K)
         mask = self.mask
         if mask is None:
