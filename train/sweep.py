@@ -192,8 +192,10 @@ def make_tasks(args: Args, module: types.ModuleType) -> list[Task]:
                     Script, args=[*tokens, "--seed", str(seed)], console_outputs=False
                 )
             except SystemExit:
+                shown = " ".join(tokens) or "of its defaults"
                 raise ValueError(
-                    f"grid: {args.script} refuses the setting {' '.join(tokens)!r}"
+                    f"grid: {args.script} refuses the setting {shown!r} (a value it cannot "
+                    "parse, or a required field not given; its message is above)"
                 ) from None
             if "name" in hints:
                 parsed = dataclasses.replace(parsed, name=f"{stem}-{index}")
