@@ -310,7 +310,9 @@ def run(args: Args) -> dict[str, Any]:
         ray.init(**({} if args.num_cpus is None else {"num_cpus": args.num_cpus}))
     if __name__ != "__main__":  # imported (tests): ship run_task by value, as __main__'s are
         ray.cloudpickle.register_pickle_by_value(sys.modules[__name__])
+    save_checkpoint(run_dir / CHECKPOINT, {"args": dataclasses.asdict(args), "tasks": finished})
     clock = time.perf_counter()
+    pending: dict[Any, Task] = {}
     try:
         remote = ray.remote(num_cpus=1)(run_task).options(
             runtime_env={"env_vars": {"TQDM_DISABLE": "1", "OMP_NUM_THREADS": "1"}}
@@ -326,6 +328,10 @@ def run(args: Args) -> dict[str, Any]:
                     run_dir / CHECKPOINT, {"args": dataclasses.asdict(args), "tasks": finished}
                 )
                 bar.update()
+    except BaseException:  # a task failed, or the driver was interrupted: stop the others
+        for ref in pending:
+            ray.cancel(ref)
+        raise
     finally:
         if started:
             ray.shutdown()

@@ -104,6 +104,60 @@ def test_two_seeds_on_ray_match_the_script_run_directly(
         module.run(dataclasses.replace(args, seeds=(0, 2), resume=str(run_dir)))
 
 
+SCRIPT = """
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Args:
+    seed: int = 0
+    scale: float = 1.0
+
+
+def run(args):
+    if args.seed == FAILING:
+        raise ValueError(f"seed {args.seed} fails")
+    return {"value": args.scale * args.seed, "nested": {"square": float(args.seed**2)}}
+"""
+
+
+@pytest.mark.usefixtures("local_ray")
+def test_a_failed_task_stops_the_sweep_and_resuming_completes_it(
+    module: ModuleType, tmp_path: Path
+) -> None:
+    """Any script with a dataclass Args and run(args); a failing task fails the sweep, whose
+    checkpoint keeps what finished; resumed (the script fixed), it runs the rest."""
+    script = tmp_path / "toy.py"
+    script.write_text(SCRIPT.replace("FAILING", "2"))
+    args = module.Args(
+        script=str(script), seeds=(0, 1, 2), grid=("scale=0.5,3",), out_dir=str(tmp_path / "r")
+    )
+    with pytest.raises(ValueError, match="seed 2 fails"):
+        module.run(args)
+    (run_dir,) = (tmp_path / "r").iterdir()
+    assert not (run_dir / "tasks.json").exists()
+    script.write_text(SCRIPT.replace("FAILING", "-1"))
+    result = module.run(dataclasses.replace(args, resume=str(run_dir)))
+    assert [(t["setting"], t["seed"]) for t in result["tasks"]] == [
+        (f"scale={scale}", seed) for scale in ("0.5", "3") for seed in (0, 1, 2)
+    ]
+    for task in result["tasks"]:  # exact: products of small integers and 0.5
+        scale = float(task["setting"].split("=")[1])
+        assert task["metrics"] == {
+            "value": scale * task["seed"],
+            "nested/square": task["seed"] ** 2,
+        }
+    rows = {(r["setting"], r["metric"]): r for r in result["statistics"]}
+    # 0, 3, 6: mean 3, s = 3, interval 3 ± t √3 with t = 0.95 / √(0.0975 / 2), the 97.5 %
+    # quantile of t with two degrees of freedom in closed form
+    row = rows["scale=3", "value"]
+    assert (row["n"], row["min"], row["max"]) == (3, 0.0, 6.0)
+    assert row["ci_high"] == pytest.approx(
+        3 + 0.95 / math.sqrt(0.0975 / 2) * math.sqrt(3), rel=1e-9
+    )
+    assert rows["scale=0.5", "nested/square"]["mean"] == pytest.approx(5 / 3, rel=1e-15)
+
+
 def test_settings_are_the_scripts_own_arguments(module: ModuleType) -> None:
     """Every seed × setting of the grid, as the Dyna-Q script's Args built directly."""
     dyna_q = load_script("dyna_q_peg")
