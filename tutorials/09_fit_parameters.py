@@ -103,10 +103,11 @@ fig.savefig(OUT / "09_speeds.png", dpi=80)
 # friction μ, and its measurement covariance by one with noise σ, gives the filter of those
 # parameters; its `log_evidence`, summed over the boxes, is `log p(y | μ, σ)`.
 #
-# With the all-modes proposal every particle expands into all modes at every step and the
-# filter keeps the likeliest mode sequences, so the random numbers hardly matter: the evidence
-# is the same to about a thousandth of a nat for any seed, and its gradient comes from
-# autograd through the linearized dynamics and the Kalman updates.
+# With the all-modes proposal every particle expands into all modes at every step, and the
+# children are cut back to the particle count by keeping every heavy child and sampling only
+# among the light ones (Fearnhead–Clifford resampling), so the random numbers hardly matter:
+# the evidence is the same to about a thousandth of a nat for any seed, and its gradient comes
+# from autograd through the linearized dynamics and the Kalman updates.
 
 # %%
 nominal = box_scene(0.5)
