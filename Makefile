@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	# torch first and alone: `torch==2.13.0` resolves to the local CPU build where one is provided.
 	$(PY) -m pip install --quiet torch==2.13.0
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,docs]"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,docs,sweep]"
 	touch $(STAMP)
 
 venv: $(STAMP)
@@ -48,7 +48,7 @@ pytest-portable: venv
 test: lint typecheck docs pytest pytest-portable
 
 bench: venv
-	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,docs,bench]"
+	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,docs,sweep,bench]"
 	$(PY) benchmarks/bench_contact.py
 	$(PY) benchmarks/bench_sim.py
 	$(PY) benchmarks/bench_robots.py

@@ -24,6 +24,12 @@ Fitting (:mod:`torchcontact.filters`): :func:`sliding_logs` simulates boxes slid
 under a noisy camera (:class:`SlidingFit` holds the settings), :func:`sliding_evidence` is the
 contact RBPF's evidence of friction and camera noise over them, and :data:`FITTERS` maximize
 it by gradient, over a grid and by CMA-ES.
+
+Many seeds (``train/sweep.py``): :func:`seed_statistics` is the mean, range and Student-t
+interval of one metric over seeds (:class:`SeedStatistics`); :func:`aggregate_seeds` gives it
+for every setting and metric (:class:`SweepRow`), from the scalars of each run's result
+(:func:`scalar_metrics`); :func:`statistics_table` and :func:`write_statistics` write the
+table as Markdown, JSON and CSV.
 """
 
 from torchcontact._checks import check_choice, check_int, check_name, check_real
@@ -76,6 +82,17 @@ from torchcontact.experiments._peg_learning import (
     run_round,
 )
 from torchcontact.experiments._q_lookup import QLookup
+from torchcontact.experiments._sweep import (
+    STATISTICS_COLUMNS,
+    SeedStatistics,
+    SweepRow,
+    aggregate_seeds,
+    scalar_metrics,
+    seed_statistics,
+    statistics_records,
+    statistics_table,
+    write_statistics,
+)
 from torchcontact.experiments._triangle_grasp import (
     FILTER_SEED_OFFSETS,
     GRASP_METHODS,
@@ -120,6 +137,7 @@ __all__ = [
     "LOCATION",
     "NUM_BELIEF_FEATURES",
     "SETTINGS",
+    "STATISTICS_COLUMNS",
     "EstimatorRuns",
     "Evaluation",
     "FitOutcome",
@@ -130,11 +148,14 @@ __all__ = [
     "Replay",
     "RoundResult",
     "RunLog",
+    "SeedStatistics",
     "Setting",
     "SlidingFit",
     "SlidingLogs",
+    "SweepRow",
     "Timing",
     "TriangleGrasp",
+    "aggregate_seeds",
     "belief_features",
     "box_scene",
     "calibrate_pf",
@@ -173,12 +194,17 @@ __all__ = [
     "run_round",
     "run_vision",
     "save_checkpoint",
+    "scalar_metrics",
+    "seed_statistics",
     "simulate_grasps",
     "sliding_evidence",
     "sliding_logs",
+    "statistics_records",
+    "statistics_table",
     "timed",
     "tracking_table",
     "triangle_scene",
     "triangle_tactile_array",
     "write_grasp_logs",
+    "write_statistics",
 ]
