@@ -1,0 +1,263 @@
+"""Robots as members of spatial scenes, against finite differences and closed-form statics.
+
+The hinge robot is one revolute joint (axis −y, so ``q > 0`` raises the arm) carrying a
+uniform bar of mass ``m = 0.5`` kg and length 0.3 m along its x axis (centre of mass at
+``l = 0.15`` m, inertia about the hinge ``I_c + m l² = 0.00375 + 0.01125 = 0.015`` kg m²).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from torchcontact.geometry import Box, HalfSpace, quat_to_matrix
+from torchcontact.robots import Robot, load
+from torchcontact.sim import (
+    UNSOLVED,
+    Body,
+    RobotMember,
+    Scene,
+    Simulator,
+    contact_problem,
+    tangent_directions,
+)
+
+G = 9.81
+HINGE_URDF = """<?xml version="1.0"?>
+<robot name="hinge">
+  <link name="base"/>
+  <joint name="hinge" type="revolute">
+    <parent link="base"/>
+    <child link="arm"/>
+    <origin xyz="0 0 0" rpy="0 0 0"/>
+    <axis xyz="0 -1 0"/>
+    <limit lower="-3" upper="3" effort="0" velocity="0"/>
+  </joint>
+  <link name="arm">
+    <inertial>
+      <origin xyz="0.15 0 0" rpy="0 0 0"/>
+      <mass value="0.5"/>
+      <inertia ixx="1e-5" ixy="0" ixz="0" iyy="0.00375" iyz="0" izz="0.00375"/>
+    </inertial>
+    <collision>
+      <origin xyz="0.15 0 0" rpy="0 0 0"/>
+      <geometry><box size="0.3 0.02 0.02"/></geometry>
+    </collision>
+  </link>
+</robot>
+"""
+HINGE_MASS, HINGE_COM, HINGE_INERTIA = 0.5, 0.15, 0.015
+
+
+@pytest.fixture
+def hinge(tmp_path: Path) -> Robot:
+    path = tmp_path / "hinge.urdf"
+    path.write_text(HINGE_URDF)
+    return Robot.from_urdf(path)
+
+
+def pose(position: tuple[float, float, float], yaw: float = 0.0) -> torch.Tensor:
+    """``(7,)`` a pose turned by ``yaw`` about world z."""
+    half = 0.5 * yaw
+    return torch.tensor([*position, math.cos(half), 0.0, 0.0, math.sin(half)], dtype=torch.float64)
+
+
+def world_point(robot: Robot, base: torch.Tensor, q: torch.Tensor, link: str, local: torch.Tensor):
+    """World position of a link-fixed point, from forward kinematics and the base pose."""
+    transform = robot.forward_kinematics(q, link)
+    inner = transform[:3, :3] @ local + transform[:3, 3]
+    return quat_to_matrix(base[3:]) @ inner + base[:3]
+
+
+def link_local(robot: Robot, base: torch.Tensor, q: torch.Tensor, link: str, point: torch.Tensor):
+    """A world point's coordinates in a link's frame."""
+    transform = robot.forward_kinematics(q, link)
+    inner = quat_to_matrix(base[3:]).T @ (point - base[:3])
+    return transform[:3, :3].T @ (inner - transform[:3, 3])
+
+
+def hinge_scene(
+    robot: Robot, *, mode: str = "servo", base: torch.Tensor | None = None, **servo: float
+) -> Simulator:
+    member = RobotMember(
+        "arm", robot, mode=mode, base_pose=pose((0.0, 0.0, 0.2)) if base is None else base, **servo
+    )
+    box = Body("box", Box((0.05, 0.05, 0.05)), mass=1.0)
+    ground = Body("ground", HalfSpace.ground(), kind="static")
+    return Simulator(Scene(bodies=(ground, box), robots=(member,)))
+
+
+def test_hinge_slots_and_columns(hinge: Robot) -> None:
+    """One box–box group (8 slots) after the box–ground group; n = 6 + 1."""
+    scene = hinge_scene(hinge).scene
+    assert scene.num_slots == 16
+    assert scene.num_dofs == 7
+    assert [(g.start, g.count) for g in scene.robot_slot_groups] == [(8, 8)]
+
+
+@pytest.mark.parametrize("mode", ["servo", "kinematic"])
+def test_contact_rows_are_finite_differences_of_the_contact_point(hinge: Robot, mode: str) -> None:
+    """A robot slot's gap rate and slip rates along its directions, as functions of the joint
+    velocity (servo: the problem's last column) and of commanded joint and base motion
+    (kinematic: ``bn``, ``bt``), equal central differences of the link-fixed contact point's
+    world position along the motion."""
+    yaw, angle = 0.4, -0.3
+    base = pose((0.01, -0.02, 0.2), yaw)
+    simulator = hinge_scene(hinge, mode=mode, base=base)
+    scene = simulator.scene
+    # The box under the arm's far end, turned with the base.
+    centre = (0.2 * math.cos(yaw), 0.2 * math.sin(yaw), 0.05)
+    q = pose(centre, yaw + 0.1).view(1, 1, 7)
+    q_robot = torch.tensor([[angle]], dtype=torch.float64)
+    state = simulator.initial_state(q=q, q_robot=q_robot, robot_base=base.view(1, 1, 7))
+    joint_rate = torch.tensor([[0.7]], dtype=torch.float64)
+    base_twist = torch.tensor([[[0.03, -0.02, 0.05, 0.1, -0.2, 0.3]]], dtype=torch.float64)
+    problem, geometry = contact_problem(
+        scene, state, joint_command=joint_rate, base_twist=base_twist
+    )
+    slots = [k for k in range(8, 16) if bool(geometry.active[0, k])]
+    assert slots, "the arm must touch the box"
+    directions = tangent_directions(geometry.normals[0], scene.friction_directions)
+    eps = 1e-6
+    for k in slots:
+        point = geometry.points[0, k]
+        local = link_local(hinge, base, q_robot[0], "arm", point)
+        normal, tangents = geometry.normals[0, k], directions[k]
+
+        def moved(t: float, rate: float, twist: torch.Tensor) -> torch.Tensor:
+            turned = torch.cat([base[:3] + t * twist[:3], _turn(base[3:], t * twist[3:])])
+            # the base turns about its own origin, which moves with twist[:3]
+            return world_point(hinge, turned, q_robot[0] + t * rate, "arm", local)
+
+        if mode == "servo":
+            still = torch.zeros(6, dtype=torch.float64)
+            velocity = (moved(eps, 1.0, still) - moved(-eps, 1.0, still)) / (2 * eps)
+            column = problem.Jn[0, k, 6], problem.Jt[0, k, :, 6]
+            torch.testing.assert_close(column[0], normal @ velocity, rtol=0, atol=1e-8)
+            torch.testing.assert_close(column[1], tangents @ velocity, rtol=0, atol=1e-8)
+        else:
+            assert problem.num_dofs == 6
+        rate = float(joint_rate) if mode == "kinematic" else 0.0
+        velocity = (moved(eps, rate, base_twist[0, 0]) - moved(-eps, rate, base_twist[0, 0])) / (
+            2 * eps
+        )
+        torch.testing.assert_close(problem.bn[0, k], normal @ velocity, rtol=0, atol=1e-8)
+        torch.testing.assert_close(problem.bt[0, k], tangents @ velocity, rtol=0, atol=1e-8)
+
+
+def _turn(quaternion: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
+    """``exp(rotation) ⊗ quaternion`` by Rodrigues (independent of the library's helpers)."""
+    angle = float(torch.linalg.vector_norm(rotation))
+    if angle == 0.0:
+        return quaternion
+    axis = rotation / angle
+    w, v = math.cos(angle / 2), math.sin(angle / 2) * axis
+    a0, a = quaternion[0], quaternion[1:]
+    return torch.cat(
+        [(w * a0 - v @ a).view(1), w * a + a0 * v + torch.linalg.cross(v, a)]
+    )
+
+
+def kinetic_energy(robot: Robot, q: torch.Tensor, qd: torch.Tensor) -> float:
+    """Σ ½ m |v_c|² + ½ ωᵀ I_w ω over the links, with each centre of mass's velocity and each
+    link's angular velocity from central differences of forward kinematics."""
+    eps = 1e-6
+    plus = robot.forward_kinematics(q + eps * qd)
+    minus = robot.forward_kinematics(q - eps * qd)
+    energy = 0.0
+    for inertial in robot.inertials:
+        a, b = plus[inertial.link], minus[inertial.link]
+        com_velocity = ((a[:3, :3] - b[:3, :3]) @ inertial.com + a[:3, 3] - b[:3, 3]) / (2 * eps)
+        relative = a[:3, :3] @ b[:3, :3].T  # exp(2 eps [ω]×)
+        skew = (relative - relative.T) / 2
+        omega = torch.stack([skew[2, 1], skew[0, 2], skew[1, 0]]) / (2 * eps)
+        middle = robot.forward_kinematics(q, inertial.link)[:3, :3]
+        inertia = middle @ inertial.inertia @ middle.T
+        energy += 0.5 * inertial.mass * float(com_velocity @ com_velocity)
+        energy += 0.5 * float(omega @ inertia @ omega)
+    return energy
+
+
+@pytest.mark.parametrize("name", ["hinge", "bhand", "wam7", "wam7_bhand", "parallel_jaw"])
+def test_mass_matrix_is_the_links_kinetic_energy(hinge: Robot, name: str) -> None:
+    """½ q̇ᵀ M(q) q̇ equals the links' kinetic energy from finite differences of forward
+    kinematics, for random q and q̇ (enough q̇ to fix every entry of the symmetric M)."""
+    robot = hinge if name == "hinge" else load(name)
+    generator = torch.Generator().manual_seed(3)
+    low, high = robot.lower.clamp(min=-2.0), robot.upper.clamp(max=2.0)
+    for _ in range(2):
+        q = low + (high - low) * torch.rand(robot.dof, generator=generator, dtype=torch.float64)
+        M = robot.mass_matrix(q)
+        torch.testing.assert_close(M, M.T, rtol=0, atol=1e-15)
+        for _ in range(robot.dof * (robot.dof + 1) // 2 + 1):
+            qd = torch.randn(robot.dof, generator=generator, dtype=torch.float64)
+            expected = kinetic_energy(robot, q, qd)
+            actual = 0.5 * float(qd @ M @ qd)
+            assert actual == pytest.approx(expected, rel=1e-7, abs=1e-12)
+    if name == "hinge":
+        torch.testing.assert_close(
+            robot.mass_matrix(torch.tensor([0.3], dtype=torch.float64)),
+            torch.tensor([[HINGE_INERTIA]], dtype=torch.float64),
+            rtol=1e-12,
+            atol=0.0,
+        )
+
+
+def far_box(batch: int = 1) -> torch.Tensor:
+    return pose((1.0, 1.0, 0.05)).expand(batch, 1, 7)
+
+
+def test_servo_holds_the_arm_against_gravity_with_the_static_torque(hinge: Robot) -> None:
+    """At rest, the servo torque K_p (q* − q) equals the weight's moment m g l cos q, with
+    stiff gains (K_p h² / I = 0.67 per step, which an explicit servo cannot integrate)."""
+    simulator = hinge_scene(hinge, stiffness=100.0, damping=2.0, torque_limit=10.0)
+    state = simulator.initial_state(q=far_box(), q_robot=torch.zeros(1, 1, dtype=torch.float64))
+    target = torch.full((150, 1, 1), 0.2, dtype=torch.float64)
+    run = simulator.rollout(state, steps=150, joint_commands=target)
+    q, qd = run.q_robot[-1, 0, 0], run.v_robot[-1, 0, 0]
+    assert abs(float(qd)) < 1e-9
+    servo = 100.0 * (0.2 - q)
+    torch.testing.assert_close(servo, HINGE_MASS * G * HINGE_COM * torch.cos(q), rtol=1e-8, atol=0)
+    assert float(run.q_robot.abs().max()) < 0.25  # no overshoot growth
+
+
+def test_saturated_servo_applies_its_torque_limit(hinge: Robot) -> None:
+    """With τ_max below the weight's moment the arm falls from horizontal at the angular
+    acceleration (τ_max − m g l) / I of the hinge's closed-form inertia."""
+    limit = 0.5 * HINGE_MASS * G * HINGE_COM
+    simulator = hinge_scene(hinge, stiffness=100.0, damping=2.0, torque_limit=limit)
+    state = simulator.initial_state(q=far_box(), q_robot=torch.zeros(1, 1, dtype=torch.float64))
+    result = simulator.step(state, joint_command=torch.full((1, 1), 0.5, dtype=torch.float64))
+    expected = simulator.scene.h * (limit - HINGE_MASS * G * HINGE_COM) / HINGE_INERTIA
+    torch.testing.assert_close(
+        result.state.v_robot[0, 0], torch.tensor(expected, dtype=torch.float64), rtol=1e-12, atol=0
+    )
+
+
+def test_kinematic_joints_follow_their_commands(hinge: Robot) -> None:
+    """A kinematic arm follows the commanded joint velocity and base twist exactly, and does
+    not yield: its tip, carried at 0.1 m/s, pushes a 1 kg box along the ground (μ = 0.5)
+    at the tip's own speed."""
+    simulator = hinge_scene(hinge, mode="kinematic", base=pose((0.0, 0.0, 0.05)))
+    h, steps = simulator.scene.h, 40
+    # The arm's end face at x = 0.3 (q = 0), the box's near face at x = 0.31.
+    state = simulator.initial_state(
+        q=pose((0.36, 0.0, 0.05)).view(1, 1, 7), q_robot=torch.zeros(1, 1, dtype=torch.float64)
+    )
+    rates = torch.full((steps, 1, 1), 1e-3, dtype=torch.float64)
+    twists = torch.zeros(steps, 1, 1, 6, dtype=torch.float64)
+    twists[..., 0] = 0.1
+    run = simulator.rollout(state, steps=steps, joint_commands=rates, base_twists=twists)
+    time = h * torch.arange(steps + 1, dtype=torch.float64)
+    torch.testing.assert_close(run.q_robot[:, 0, 0], 1e-3 * time, rtol=0, atol=1e-12)
+    torch.testing.assert_close(run.robot_base[:, 0, 0, 0], 0.1 * time, rtol=0, atol=1e-12)
+    # Tip speed along x: base speed minus the joint rate's (tiny) contribution at 0.3 m.
+    tip = run.q[-1, 0, 0, 0] - 0.36
+    assert float(tip) > 0.02  # pushed for about 0.3 s
+    torch.testing.assert_close(
+        run.v[-5:, 0, 0, 0], torch.full((5,), 0.1, dtype=torch.float64), rtol=0, atol=1e-3 * 0.3
+    )
+    assert not bool((run.solver == UNSOLVED).any())
