@@ -127,7 +127,9 @@ def test_contact_rows_are_finite_differences_of_the_contact_point(hinge: Robot, 
         local = link_local(hinge, base, q_robot[0], "arm", point)
         normal, tangents = geometry.normals[0, k], directions[k]
 
-        def moved(t: float, rate: float, twist: torch.Tensor) -> torch.Tensor:
+        def moved(
+            t: float, rate: float, twist: torch.Tensor, local: torch.Tensor = local
+        ) -> torch.Tensor:
             turned = torch.cat([base[:3] + t * twist[:3], _turn(base[3:], t * twist[3:])])
             # the base turns about its own origin, which moves with twist[:3]
             return world_point(hinge, turned, q_robot[0] + t * rate, "arm", local)
@@ -156,9 +158,7 @@ def _turn(quaternion: torch.Tensor, rotation: torch.Tensor) -> torch.Tensor:
     axis = rotation / angle
     w, v = math.cos(angle / 2), math.sin(angle / 2) * axis
     a0, a = quaternion[0], quaternion[1:]
-    return torch.cat(
-        [(w * a0 - v @ a).view(1), w * a + a0 * v + torch.linalg.cross(v, a)]
-    )
+    return torch.cat([(w * a0 - v @ a).view(1), w * a + a0 * v + torch.linalg.cross(v, a)])
 
 
 def kinetic_energy(robot: Robot, q: torch.Tensor, qd: torch.Tensor) -> float:
@@ -261,3 +261,152 @@ def test_kinematic_joints_follow_their_commands(hinge: Robot) -> None:
         run.v[-5:, 0, 0, 0], torch.full((5,), 0.1, dtype=torch.float64), rtol=0, atol=1e-3 * 0.3
     )
     assert not bool((run.solver == UNSOLVED).any())
+
+
+# Grasp threshold: a box squeezed by servo fingers whose torque limits give a total normal
+# force F_n is lifted by a kinematic base iff μ F_n ≥ m g. The base accelerates at
+# LIFT_ACCELERATION up to LIFT_SPEED, so holding needs μ F_n ≥ m (g + a): the masses tried,
+# m = μ F_n / (ratio g) with ratio = 1.05 and 0.95, are 5 % on either side of the static
+# threshold and clear of the 1 % that the acceleration adds.
+MU, LIFT_ACCELERATION, LIFT_SPEED = 0.5, 0.1, 0.05
+
+
+def lift(simulator: Simulator, state, *, close: int, steps: int, targets: torch.Tensor):
+    """Close for ``close`` steps at rest, then lift the base; returns the rollout."""
+    total = close + steps
+    twists = torch.zeros(total, 1, 1, 6, dtype=torch.float64)
+    time = simulator.scene.h * torch.arange(1, steps + 1, dtype=torch.float64)
+    twists[close:, 0, 0, 2] = (LIFT_ACCELERATION * time).clamp(max=LIFT_SPEED)
+    run = simulator.rollout(state, steps=total, joint_commands=targets, base_twists=twists)
+    assert not bool((run.solver == UNSOLVED).any())
+    return run
+
+
+def check_threshold(run, ratio: float, box_z: float, *, close: int) -> None:
+    """Above the threshold the box rises with the base without slipping; below, it stays on
+    the ground while the fingers slide up its faces."""
+    relative = run.q[close:, 0, 0, 2] - run.robot_base[close:, 0, 0, 2]
+    rise = float(run.robot_base[-1, 0, 0, 2] - run.robot_base[close, 0, 0, 2])
+    assert rise > 0.02
+    if ratio > 1:
+        torch.testing.assert_close(relative, relative[:1].expand_as(relative), rtol=0, atol=1e-9)
+        assert float(run.q[-1, 0, 0, 2]) == pytest.approx(box_z + rise, abs=1e-9)
+    else:
+        assert float(run.q[-1, 0, 0, 2]) == pytest.approx(box_z, abs=1e-6)
+        assert float(relative[0] - relative[-1]) == pytest.approx(rise, abs=1e-6)
+
+
+def pad_gripper(tmp_path: Path, height: float) -> Robot:
+    """The parallel-jaw gripper with a 5 mm sphere pad on each finger's inner face, ``height``
+    from the palm, instead of the whole finger box: a box face against a box face touches in
+    four corners whose normal impulses the rigid LCP does not determine (any split of the
+    grip between them solves it, and a pivoting solver may load one corner, which twists the
+    box); one pad per finger makes the grip a single point on each face."""
+    text = (Path(load("parallel_jaw").source)).read_text()
+    finger = """    <collision>
+      <origin xyz="0.005 0.03 0" rpy="0 0 0"/>
+      <geometry><box size="0.01 0.06 0.02"/></geometry>
+    </collision>"""
+    pad = f"""    <collision>
+      <origin xyz="0.005 {height} 0" rpy="0 0 0"/>
+      <geometry><sphere radius="0.005"/></geometry>
+    </collision>"""
+    assert text.count(finger) == 2
+    path = tmp_path / "pad_gripper.urdf"
+    path.write_text(text.replace(finger, pad))
+    return Robot.from_urdf(path)
+
+
+@pytest.mark.parametrize("ratio", [1.05, 0.95])
+def test_parallel_jaw_lifts_the_box_iff_friction_carries_its_weight(
+    tmp_path: Path, ratio: float
+) -> None:
+    """The jaw's coordinate moves both fingers (coupled), so its force limit F is the sum of
+    the two pads' normal forces: F_n = F, and the box (m = μ F / (ratio g)) follows the lift
+    iff ratio ≥ 1. The gripper points down (palm normal −z, fingers along ±x), the pads at
+    the box's centre of mass."""
+    force = 4.0
+    half = math.sqrt(0.5)
+    gripper = RobotMember(
+        "gripper",
+        pad_gripper(tmp_path, 0.045),
+        stiffness=1000.0,
+        damping=10.0,
+        torque_limit=force,
+        base_pose=torch.tensor([0.0, 0.0, 0.075, half, -half, 0.0, 0.0], dtype=torch.float64),
+    )
+    box = Body("box", Box((0.03, 0.03, 0.03)), mass=MU * force / (ratio * G))
+    ground = Body("ground", HalfSpace.ground(), kind="static")
+    simulator = Simulator(Scene(bodies=(ground, box), robots=(gripper,), friction=MU))
+    state = simulator.initial_state(
+        q=pose((0.0, 0.0, 0.03)).view(1, 1, 7), q_robot=torch.tensor([[0.032]], dtype=torch.float64)
+    )
+    close, steps = 20, 80
+    targets = torch.zeros(close + steps, 1, 1, dtype=torch.float64)  # closed: saturated
+    run = lift(simulator, state, close=close, steps=steps, targets=targets)
+    # The grip: both pads' normal impulses sum to h F (robot slots follow the 8 ground slots).
+    grip = run.pn[close - 1, 0, 8:].sum() / simulator.scene.h
+    assert float(grip) == pytest.approx(force, rel=1e-9)
+    check_threshold(run, ratio, 0.03, close=close)
+
+
+def outer_cap_point(hand: Robot, theta: float, finger: int = 1) -> torch.Tensor:
+    """The point of finger ``finger``'s outer capsule that faces the grasp (hand frame): the
+    end cap's centre (0.05, 0, 0) in the outer link frame, offset by the radius D3 towards the
+    hand's centre (+y for F1 and F2, −y for F3)."""
+    q = torch.tensor([0.0, theta, theta, theta], dtype=torch.float64)
+    transform = hand.forward_kinematics(q, f"bhand_f{finger}_outer")
+    centre = transform[:3, :3] @ torch.tensor([0.05, 0.0, 0.0], dtype=torch.float64)
+    side = 1.0 if finger < 3 else -1.0
+    return centre + transform[:3, 3] + torch.tensor([0.0, side * 0.0095, 0.0], dtype=torch.float64)
+
+
+@pytest.mark.parametrize("ratio", [1.05, 0.95])
+def test_barretthand_lifts_the_box_iff_friction_carries_its_weight(ratio: float) -> None:
+    """The BarrettHand pointing down grasps a box on its vertical faces, finger 3 opposing
+    fingers 1 and 2 (spread 0), with the outer links' tips at the box's centre of mass.
+
+    The box half width w = 0.06 m is where the fingertip's height in the hand is extremal
+    (θ ≈ 0.95), so the tip closes horizontally and the box's weight does not load the finger
+    joints. Each finger's servo is saturated at its torque limit (gravity compensated), so
+    its pad presses with N = τ / λ, λ the lever ∂p_y/∂θ of the pad point from central
+    differences of forward kinematics (along the coupled coordinate: inner θ, outer θ/3).
+    Finger 3 has twice the limit, gains and damping of fingers 1 and 2, so that the box is
+    squeezed without being pushed: N₃ = N₁ + N₂ and F_n = 4 τ / λ."""
+    hand = load("bhand")
+    tau, eps = 0.2, 1e-6
+    theta = 0.9536  # the pad point's |y| = 0.06
+    assert float(outer_cap_point(hand, theta)[1]) == pytest.approx(-0.06, abs=1e-4)
+    lever = float(outer_cap_point(hand, theta + eps)[1] - outer_cap_point(hand, theta - eps)[1])
+    lever /= 2 * eps
+    total_normal = 4 * tau / lever
+    member = RobotMember(
+        "hand",
+        hand,
+        stiffness=torch.tensor([50.0, 5.0, 5.0, 10.0], dtype=torch.float64),
+        damping=torch.tensor([1.0, 0.05, 0.05, 0.1], dtype=torch.float64),
+        torque_limit=torch.tensor([10.0, tau, tau, 2 * tau], dtype=torch.float64),
+        gravity_compensation=True,
+        # palm down (turned by π about x): hand y → world −y, hand z → world −z
+        base_pose=torch.tensor([0.0, 0.0, 0.2264, 0.0, 1.0, 0.0, 0.0], dtype=torch.float64),
+    )
+    box = Body("box", Box((0.04, 0.06, 0.04)), mass=MU * total_normal / (ratio * G))
+    ground = Body("ground", HalfSpace.ground(), kind="static")
+    simulator = Simulator(Scene(bodies=(ground, box), robots=(member,), friction=MU))
+    start = 0.85
+    state = simulator.initial_state(
+        q=pose((0.0, 0.0, 0.04)).view(1, 1, 7),
+        q_robot=torch.tensor([[0.0, start, start, start]], dtype=torch.float64),
+    )
+    close, steps = 40, 80
+    # Finger targets ramp closed at 1 rad/s past the box (the servos saturate on contact).
+    ramp = (start + simulator.scene.h * torch.arange(1, close + steps + 1)).clamp(max=1.3)
+    targets = torch.zeros(close + steps, 1, 4, dtype=torch.float64)
+    targets[:, 0, 1:] = ramp[:, None].to(torch.float64)
+    run = lift(simulator, state, close=close, steps=steps, targets=targets)
+    torch.testing.assert_close(
+        run.q_robot[close, 0, 1:], torch.full((3,), theta, dtype=torch.float64), rtol=0, atol=2e-4
+    )
+    grip = run.pn[close - 1, 0, 8:].sum() / simulator.scene.h
+    assert float(grip) == pytest.approx(total_normal, rel=1e-3)
+    check_threshold(run, ratio, 0.04, close=close)

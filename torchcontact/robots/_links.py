@@ -80,7 +80,7 @@ def link_shape(element: UrdfCollision) -> LinkShape:
     radius whose axis segment has the cylinder's length)."""
     shape: Box | Sphere | Capsule
     if element.kind == "box":
-        shape = Box(tuple(0.5 * size for size in element.size))
+        shape = Box(0.5 * torch.tensor(element.size, dtype=torch.float64))
     elif element.kind == "sphere":
         shape = Sphere(element.size[0])
     else:

@@ -306,7 +306,8 @@ def parse_urdf(text: str, *, source: str) -> UrdfModel:
     roots = [link for link in links if link not in children]
     if len(roots) != 1:
         raise ValueError(f"{source}: expected one root link, found {roots}")
-    inertials, collisions = [], []
+    inertials: list[UrdfInertial] = []
+    collisions: list[UrdfCollision] = []
     for link in robot.findall("link"):
         name = link.get("name", "")
         inertial = link.find("inertial")

@@ -126,19 +126,19 @@ def _build_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> Sce
     planes = [i for i in static if isinstance(scene.bodies[i].shape, unbounded)]
     order = [*scene.dynamic, *scene.kinematic, *posed, *planes]
     shape_index = {body: s for s, body in enumerate(order)}
-    shapes = [scene.bodies[i].shape for i in order]
+    shapes: list[object] = [scene.bodies[i].shape for i in order]
     groups = [(shape_index[g.receiver], shape_index[g.other]) for g in scene.slot_groups]
     robot_shape_start = []
-    for member in scene.robots:
+    for robot_member in scene.robots:
         robot_shape_start.append(len(shapes))
-        shapes.extend(link_shape.shape for link_shape in member.robot.collision_shapes)
+        shapes.extend(link_shape.shape for link_shape in robot_member.robot.collision_shapes)
     groups.extend(
         (robot_shape_start[g.robot] + g.shape, shape_index[g.other])
         for g in scene.robot_slot_groups
     )
     table: PlanarSlotTable | SpatialSlotTable
     if scene.dimension == 2:
-        table = planar_slot_table(shapes, groups, margin=scene.margin)
+        table = planar_slot_table(shapes, groups, margin=scene.margin)  # type: ignore[arg-type]
     else:
         table = spatial_slot_table(shapes, groups, margin=scene.margin)  # type: ignore[arg-type]
     static_poses = torch.zeros(len(posed) + len(planes), scene.pose_size, dtype=torch.float64)
@@ -181,9 +181,10 @@ def _build_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> Sce
         slot_friction.extend([found[0] if found else len(sources) - 1] * rgroup.count)
     servo_columns: list[int | None] = []
     servo_start = 0
-    for member in scene.robots:
-        servo_columns.append(servo_start if member.mode == "servo" else None)
-        servo_start += member.dof if member.mode == "servo" else 0
+    for robot_member in scene.robots:
+        servo = robot_member.mode == "servo"
+        servo_columns.append(servo_start if servo else None)
+        servo_start += robot_member.dof if servo else 0
 
     def constant(value: float | Tensor) -> bool:
         return not isinstance(value, Tensor) or (value.numel() == 1 and not value.requires_grad)

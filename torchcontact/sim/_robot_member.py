@@ -29,7 +29,8 @@ step, ``K_p (q^* − q) − K_d q̇``: if its magnitude is within the limit, the
 linear regime and the implicit terms are folded into the problem, ``M_eff = M + h K_d +
 h² K_p`` (diagonal added) and the generalized force ``K_p (q^* − q − h q̇) − K_d q̇``; otherwise
 the joint is saturated and its torque is the constant ``± τ_max``. Gravity on the links
-(:meth:`~torchcontact.robots.Robot.gravity_force`) is added in both cases; velocity-product
+(:meth:`~torchcontact.robots.Robot.gravity_force`) is added in both cases (unless the servo
+compensates it, ``gravity_compensation``); velocity-product
 (Coriolis, centrifugal) terms of the joints and the inertial forces of an accelerating base
 are neglected (slow, servoed motion).
 
@@ -73,6 +74,9 @@ class RobotMember:
         torque_limit: ``τ_max``, N m (N), ``> 0``, a number or ``(dof,)`` (``inf``: unlimited).
         base_pose: ``(7,)`` default world pose of the robot's base frame (its URDF root link):
             position and unit quaternion ``(w, x, y, z)``; default the identity.
+        gravity_compensation: the servo also cancels the links' weight (adds
+            ``−Σ m Jcᵀ g``), as the WAM's and many hands' controllers do; the torque limit
+            then bounds the PD part only.
     """
 
     name: str
@@ -82,6 +86,7 @@ class RobotMember:
     damping: float | Tensor = 0.1
     torque_limit: float | Tensor = float("inf")
     base_pose: Tensor | None = None
+    gravity_compensation: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str):
@@ -97,6 +102,10 @@ class RobotMember:
         if self.mode == "servo" and not self.robot.inertials:
             raise ValueError(
                 f"robot: a servo robot needs link <inertial> elements, {self.robot.name!r} has none"
+            )
+        if not isinstance(self.gravity_compensation, bool):
+            raise ValueError(
+                f"gravity_compensation must be a bool, got {self.gravity_compensation!r}"
             )
         dof = self.robot.dof
         for name, low, strict in (
@@ -256,7 +265,9 @@ def robot_step(
             added, torque = servo_terms(member, q, qd, target, h)
             gravity_base = g @ rotation  # Rᵀ g, (P, 3)
             masses.append(robot.mass_matrix(q) + torch.diag_embed(added))
-            forces.append(torque + robot.gravity_force(q, gravity_base))
+            if not member.gravity_compensation:
+                torque = torque + robot.gravity_force(q, gravity_base)
+            forces.append(torque)
             velocities.append(qd)
     mass = _batched_block_diag(masses) if masses else q_robot.new_zeros(P, 0, 0)
     empty = q_robot.new_zeros(P, 0)

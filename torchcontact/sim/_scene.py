@@ -387,8 +387,8 @@ class Scene:
     @property
     def num_slots(self) -> int:
         """``K``, the total number of contact slots (bodies' slots, then robots')."""
-        groups = (*self.slot_groups, *self.robot_slot_groups)
-        return sum(group.count for group in groups)
+        bodies = sum(group.count for group in self.slot_groups)
+        return bodies + sum(group.count for group in self.robot_slot_groups)
 
     def pair_mu(self, a: int, b: int, *, robot: bool = False) -> float | Tensor:
         """Friction coefficient between bodies ``a`` and ``b`` (with ``robot``: between the
