@@ -410,3 +410,50 @@ def test_barretthand_lifts_the_box_iff_friction_carries_its_weight(ratio: float)
     grip = run.pn[close - 1, 0, 8:].sum() / simulator.scene.h
     assert float(grip) == pytest.approx(total_normal, rel=1e-3)
     check_threshold(run, ratio, 0.04, close=close)
+
+
+def test_bad_robot_members_and_inputs_are_rejected(hinge: Robot) -> None:
+    with pytest.raises(ValueError, match="mode must be"):
+        RobotMember("arm", hinge, mode="torque")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="stiffness must be >= 0"):
+        RobotMember("arm", hinge, stiffness=-1.0)
+    with pytest.raises(ValueError, match=r"damping must be a number or have shape \(1,\)"):
+        RobotMember("arm", hinge, damping=torch.ones(2))
+    with pytest.raises(ValueError, match="torque_limit must be > 0"):
+        RobotMember("arm", hinge, torque_limit=0.0)
+    with pytest.raises(ValueError, match="base_pose"):
+        RobotMember("arm", hinge, base_pose=torch.tensor([0.0, 0, 0, 2, 0, 0, 0]))
+    with pytest.raises(ValueError, match="no <collision> primitives"):
+        RobotMember("arm", Robot.from_urdf(_bare(hinge)))
+    ground = Body("ground", HalfSpace.ground(), kind="static")
+    box = Body("box", Box((0.05, 0.05, 0.05)), mass=1.0)
+    with pytest.raises(ValueError, match="unique among bodies and robots"):
+        Scene(bodies=(ground, box), robots=(RobotMember("box", hinge),))
+    simulator = hinge_scene(hinge)
+    with pytest.raises(ValueError, match=r"q_robot of shape \(\*B, 1\) is required"):
+        simulator.initial_state(q=far_box())
+    state = simulator.initial_state(q=far_box(), q_robot=torch.zeros(1, 1, dtype=torch.float64))
+    with pytest.raises(ValueError, match="joint_command"):
+        simulator.step(state, joint_command=torch.zeros(1, 2, dtype=torch.float64))
+    with pytest.raises(ValueError, match="base_twist"):
+        simulator.step(state, base_twist=torch.full((1, 1, 6), math.nan, dtype=torch.float64))
+
+
+def _bare(robot: Robot) -> str:
+    """The hinge's URDF without its collision element (a path next to the hinge's)."""
+    path = Path(robot.source).with_name("bare.urdf")
+    text = HINGE_URDF
+    start, end = text.index("    <collision>"), text.index("</collision>") + len("</collision>\n")
+    path.write_text(text[:start] + text[end:])
+    return str(path)
+
+
+def test_scenes_without_robots_keep_their_state_layout() -> None:
+    """A robot-free state has empty robot fields, so existing constructors keep working."""
+    ground = Body("ground", HalfSpace.ground(), kind="static")
+    simulator = Simulator(Scene(bodies=(ground, Body("box", Box((0.1, 0.1, 0.1)), mass=1.0))))
+    state = simulator.initial_state(q=pose((0.0, 0.0, 0.1)).expand(3, 1, 7))
+    assert state.q_robot is not None and state.q_robot.shape == (3, 0)
+    assert state.robot_base is not None and state.robot_base.shape == (3, 0, 7)
+    run = simulator.rollout(state, steps=2)
+    assert run.q_robot is not None and run.q_robot.shape == (3, 3, 0)
