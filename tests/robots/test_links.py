@@ -14,7 +14,10 @@ from torchcontact.robots import Robot, load
 PRIMITIVES = """<?xml version="1.0"?>
 <robot name="primitives">
   <link name="base">
-    <collision><origin xyz="0.1 0 0" rpy="0 0 0"/><geometry><box size="0.2 0.4 0.6"/></geometry></collision>
+    <collision>
+      <origin xyz="0.1 0 0" rpy="0 0 0"/>
+      <geometry><box size="0.2 0.4 0.6"/></geometry>
+    </collision>
     <collision><geometry><sphere radius="0.05"/></geometry></collision>
     <collision>
       <origin xyz="0 0 0.3" rpy="0 1.5707963267948966 0"/>
@@ -129,7 +132,7 @@ def test_link_jacobians_are_finite_differences_of_the_link_frames() -> None:
     """Each link origin's velocity and angular velocity per unit joint velocity, batched."""
     robot = load("wam7_bhand")
     q = torch.linspace(0.1, 0.9, robot.dof, dtype=torch.float64).unsqueeze(0).expand(2, -1)
-    transforms, jacobians = robot.link_jacobians(q)
+    _transforms, jacobians = robot.link_jacobians(q)
     assert jacobians.shape == (2, len(robot.link_names), 6, robot.dof)
     eps = 1e-6
     for j in range(robot.dof):

@@ -453,7 +453,10 @@ def test_scenes_without_robots_keep_their_state_layout() -> None:
     ground = Body("ground", HalfSpace.ground(), kind="static")
     simulator = Simulator(Scene(bodies=(ground, Body("box", Box((0.1, 0.1, 0.1)), mass=1.0))))
     state = simulator.initial_state(q=pose((0.0, 0.0, 0.1)).expand(3, 1, 7))
-    assert state.q_robot is not None and state.q_robot.shape == (3, 0)
-    assert state.robot_base is not None and state.robot_base.shape == (3, 0, 7)
+    assert state.q_robot is not None
+    assert state.q_robot.shape == (3, 0)
+    assert state.robot_base is not None
+    assert state.robot_base.shape == (3, 0, 7)
     run = simulator.rollout(state, steps=2)
-    assert run.q_robot is not None and run.q_robot.shape == (3, 3, 0)
+    assert run.q_robot is not None
+    assert run.q_robot.shape == (3, 3, 0)
