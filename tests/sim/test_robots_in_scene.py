@@ -460,3 +460,72 @@ def test_scenes_without_robots_keep_their_state_layout() -> None:
     run = simulator.rollout(state, steps=2)
     assert run.q_robot is not None
     assert run.q_robot.shape == (3, 3, 0)
+
+
+def test_batched_robot_scenes_equal_the_scenes_one_by_one(hinge: Robot) -> None:
+    """A batch of arms (different angles, bases, commands) pressing boxes steps as each scene
+    alone: no robot quantity mixes batch entries."""
+    simulator = hinge_scene(hinge, stiffness=50.0, damping=1.0, torque_limit=2.0)
+    q = torch.stack([pose((0.2, 0.0, 0.05)), pose((0.21, 0.01, 0.05), 0.1), far_box()[0, 0]])
+    q_robot = torch.tensor([[-0.34], [-0.3], [0.0]], dtype=torch.float64)
+    base = torch.stack([pose((0.0, 0.0, 0.2)), pose((0.0, 0.0, 0.21), 0.05), pose((0.0, 0, 0.2))])
+    state = simulator.initial_state(q=q.unsqueeze(1), q_robot=q_robot, robot_base=base.unsqueeze(1))
+    commands = torch.tensor([[[-1.0]], [[-0.5]], [[0.3]]], dtype=torch.float64).expand(3, 3, 1)
+    twists = torch.zeros(3, 3, 1, 6, dtype=torch.float64)
+    twists[..., 2] = torch.tensor([0.0, -0.05, 0.02], dtype=torch.float64)[:, None]
+    batched = simulator.rollout(
+        state, steps=3, joint_commands=commands.transpose(0, 1), base_twists=twists.transpose(0, 1)
+    )
+    for b in range(3):
+        alone = simulator.rollout(
+            state[b : b + 1],
+            steps=3,
+            joint_commands=commands[b : b + 1].transpose(0, 1),
+            base_twists=twists[b : b + 1].transpose(0, 1),
+        )
+        for name in ("q", "v", "q_robot", "v_robot", "robot_base"):
+            torch.testing.assert_close(
+                getattr(batched, name)[:, b], getattr(alone, name)[:, 0], rtol=0, atol=1e-12
+            )
+        # A box resting on four corners splits its weight between them in no unique way (the
+        # solvers' answers differ by ~1e-10 with the batch's compaction width): compare each
+        # group's total impulse.
+        for group in (slice(0, 8), slice(8, 16)):
+            torch.testing.assert_close(
+                batched.pn[:, b, group].sum(-1), alone.pn[:, 0, group].sum(-1), rtol=0, atol=1e-12
+            )
+    assert float(batched.pn[:, 0, 8:].sum()) > 0  # the first arm presses its box
+
+
+def test_rollout_gradients_through_the_robot_agree_with_finite_differences(hinge: Robot) -> None:
+    """d/d(initial joint angle, servo target, base speed) of the arm's and the box's final
+    state, while the servo arm presses the box (active contacts every step): autograd through
+    the mode-fixed steps against central differences of the same rollouts."""
+    simulator = hinge_scene(hinge, stiffness=50.0, damping=1.0, torque_limit=10.0)
+
+    def outcome(inputs: torch.Tensor) -> torch.Tensor:
+        angle, target, speed = inputs.unbind()
+        state = simulator.initial_state(
+            q=pose((0.2, 0.0, 0.05)).view(1, 1, 7), q_robot=angle.view(1, 1)
+        )
+        twists = torch.zeros(4, 1, 1, 6, dtype=torch.float64)
+        twists = twists + torch.stack(
+            [speed, speed * 0, speed * 0, speed * 0, speed * 0, speed * 0]
+        ).view(1, 1, 1, 6)
+        run = simulator.rollout(
+            state, steps=4, joint_commands=target.view(1, 1, 1).expand(4, 1, 1), base_twists=twists
+        )
+        assert float(run.pn[:, 0, 8:].sum(-1).min().detach()) > 0  # pressing at every step
+        return torch.stack([run.q_robot[-1, 0, 0], run.v_robot[-1, 0, 0], run.q[-1, 0, 0, 0]])
+
+    inputs = torch.tensor([-0.3434, -0.6, 0.05], dtype=torch.float64, requires_grad=True)
+    jacobian = torch.autograd.functional.jacobian(outcome, inputs)
+    eps = 1e-6
+    expected = torch.stack(
+        [
+            (outcome(inputs.detach() + eps * e) - outcome(inputs.detach() - eps * e)) / (2 * eps)
+            for e in torch.eye(3, dtype=torch.float64)
+        ],
+        dim=-1,
+    )
+    torch.testing.assert_close(jacobian, expected, rtol=1e-5, atol=1e-7)

@@ -48,7 +48,6 @@ from dataclasses import dataclass
 from typing import Literal
 
 import torch
-from pytorch_kinematics.transforms import matrix_to_quaternion
 from torch import Tensor
 
 from torchcontact._checks import check_float, describe
@@ -221,7 +220,8 @@ def robot_step(
         v_robot: ``(P, Nj)`` joint velocities.
         robot_base: ``(P, R, 7)`` base poses, world frame.
         joint_command: ``(P, Nj)``: servo robots' target positions, kinematic robots' joint
-            velocities; ``None``: hold the current positions, no joint motion.
+            velocities; ``None``: servo targets at the current positions (damping only), no
+            kinematic joint motion.
         base_twist: ``(P, R, 6)`` base twists ``(v, ω)`` (world frame, at the base frame's
             origin), or ``None`` (at rest).
         gravity: gravitational acceleration, world frame.
@@ -255,7 +255,7 @@ def robot_step(
             frame = robot.link_names.index(link_shape.link)
             local = link_shape.pose.to(dtype=dtype, device=device)
             position = (link_rotation[:, frame] @ local[:3, None]).squeeze(-1) + origin[:, frame]
-            orientation = matrix_to_quaternion(link_rotation[:, frame] @ quat_to_matrix(local[3:]))
+            orientation = _rotation_quaternion(link_rotation[:, frame] @ quat_to_matrix(local[3:]))
             shapes.append(torch.cat([position, orientation], dim=-1))
         origins.append(origin)
         jacobians.append(jacobian)
@@ -293,3 +293,45 @@ def _batched_block_diag(blocks: list[Tensor]) -> Tensor:
         rows.append(torch.cat([left, block, right], dim=-1))
         start += n
     return torch.cat(rows, dim=-2)
+
+
+def _rotation_quaternion(rotation: Tensor) -> Tensor:
+    """``(*B, 4)`` unit quaternions ``(w, x, y, z)`` of rotation matrices ``(*B, 3, 3)``.
+
+    Shepperd's method: of the four expressions ``4w² = 1 + tr R``, ``4x² = 1 + R₀₀ − R₁₁ − R₂₂``
+    (and ``y``, ``z`` alike) the largest (``≥ 1``) gives one component by a square root and the
+    others by division, which is accurate and differentiable for every rotation. (Every
+    branch is evaluated with its square root's argument clamped to ``≥ 1e-12``, so that the
+    branches not taken have finite values and zero gradients.)
+
+    Reference: S. W. Shepperd, "Quaternion from rotation matrix", Journal of Guidance and
+    Control 1(3), 1978.
+    """
+    r = rotation
+    r00, r11, r22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
+    w_x, w_y, w_z = (
+        r[..., 2, 1] - r[..., 1, 2],
+        r[..., 0, 2] - r[..., 2, 0],
+        r[..., 1, 0] - r[..., 0, 1],
+    )
+    xy, xz, yz = (
+        r[..., 0, 1] + r[..., 1, 0],
+        r[..., 0, 2] + r[..., 2, 0],
+        r[..., 1, 2] + r[..., 2, 1],
+    )
+    squares = torch.stack(
+        [1 + r00 + r11 + r22, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22],
+        dim=-1,
+    )
+    s = 2 * torch.sqrt(squares.clamp(min=1e-12))  # 4 |component| per branch
+    candidates = torch.stack(
+        [
+            torch.stack([s[..., 0] / 4, w_x / s[..., 0], w_y / s[..., 0], w_z / s[..., 0]], -1),
+            torch.stack([w_x / s[..., 1], s[..., 1] / 4, xy / s[..., 1], xz / s[..., 1]], -1),
+            torch.stack([w_y / s[..., 2], xy / s[..., 2], s[..., 2] / 4, yz / s[..., 2]], -1),
+            torch.stack([w_z / s[..., 3], xz / s[..., 3], yz / s[..., 3], s[..., 3] / 4], -1),
+        ],
+        dim=-2,
+    )  # (*B, 4 branches, 4)
+    best = squares.argmax(-1)[..., None, None].expand(*squares.shape[:-1], 1, 4)
+    return candidates.gather(-2, best).squeeze(-2)

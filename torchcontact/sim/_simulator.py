@@ -276,7 +276,9 @@ class Simulator:
             friction: ``(*B, K)`` per-slot friction overriding the scene's, ``>= 0``.
             joint_command: ``(*B, Nj)`` the robots' joint commands, robots in scene order: a
                 servo robot's target positions ``q*``, a kinematic robot's joint velocities;
-                default: servo robots hold their current positions, kinematic joints rest.
+                default: the servo targets are the current positions (the servo then only
+                damps the joints, it does not pull them back under a load) and kinematic
+                joints rest.
             base_twist: ``(*B, R, 6)`` the robots' base twists ``(v, ω)`` over the step
                 (world frame, at the base frame's origin); default at rest.
 
