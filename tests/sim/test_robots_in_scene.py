@@ -140,6 +140,13 @@ def test_contact_rows_are_finite_differences_of_the_contact_point(hinge: Robot, 
             column = problem.Jn[0, k, 6], problem.Jt[0, k, :, 6]
             torch.testing.assert_close(column[0], normal @ velocity, rtol=0, atol=1e-8)
             torch.testing.assert_close(column[1], tangents @ velocity, rtol=0, atol=1e-8)
+            # the same rows as Robot.contact_jacobian, in the robot's base frame
+            turn = quat_to_matrix(base[3:]).T
+            jn, jt = hinge.contact_jacobian(
+                q_robot[0], "arm", point=local, normal=turn @ normal, tangents=tangents @ turn.T
+            )
+            torch.testing.assert_close(column[0], jn[0], rtol=0, atol=1e-14)
+            torch.testing.assert_close(column[1], jt[:, 0], rtol=0, atol=1e-14)
         else:
             assert problem.num_dofs == 6
         rate = float(joint_rate) if mode == "kinematic" else 0.0
