@@ -536,3 +536,85 @@ def test_rollout_gradients_through_the_robot_agree_with_finite_differences(hinge
         dim=-1,
     )
     torch.testing.assert_close(jacobian, expected, rtol=1e-5, atol=1e-7)
+
+
+ELBOW_URDF = HINGE_URDF.replace(
+    "</robot>",
+    """  <joint name="elbow" type="revolute">
+    <parent link="arm"/>
+    <child link="forearm"/>
+    <origin xyz="0.3 0 0" rpy="0 0 0"/>
+    <axis xyz="0 -1 0"/>
+    <limit lower="-3" upper="3" effort="0" velocity="0"/>
+  </joint>
+  <link name="forearm">
+    <inertial>
+      <origin xyz="0.1 0 0" rpy="0 0 0"/>
+      <mass value="0.2"/>
+      <inertia ixx="1e-5" ixy="0" ixz="0" iyy="0.0006667" iyz="0" izz="0.0006667"/>
+    </inertial>
+    <collision>
+      <origin xyz="0.1 0 0" rpy="0 0 0"/>
+      <geometry><box size="0.2 0.02 0.02"/></geometry>
+    </collision>
+  </link>
+</robot>""",
+)
+
+
+def test_kinematic_joints_of_a_servo_robot(tmp_path: Path) -> None:
+    """A servo robot whose first joint is kinematic (``kinematic_joints``): the problem has a
+    column for the servoed elbow only, whose rows on a forearm contact are central
+    differences of the contact point along the elbow angle; the commanded shoulder rate and
+    the base twist enter ``bn``, ``bt`` as differences along that motion; the shoulder follows
+    its command exactly."""
+    path = tmp_path / "elbow.urdf"
+    path.write_text(ELBOW_URDF)
+    robot = Robot.from_urdf(path)
+    base = pose((0.0, 0.0, 0.2), 0.2)
+    member = RobotMember("arm", robot, kinematic_joints=("hinge",), base_pose=base)
+    box = Body("box", Box((0.05, 0.05, 0.05)), mass=1.0)
+    ground = Body("ground", HalfSpace.ground(), kind="static")
+    simulator = Simulator(Scene(bodies=(ground, box), robots=(member,)))
+    assert simulator.scene.num_dofs == 7
+    centre = (0.45 * math.cos(0.2), 0.45 * math.sin(0.2), 0.05)
+    q_robot = torch.tensor([[0.0, -0.5]], dtype=torch.float64)
+    state = simulator.initial_state(
+        q=pose(centre, 0.2).view(1, 1, 7), q_robot=q_robot, robot_base=base.view(1, 1, 7)
+    )
+    command = torch.tensor([[0.4, -0.6]], dtype=torch.float64)  # shoulder rate, elbow target
+    twist = torch.tensor([[[0.02, 0.01, -0.03, 0.0, 0.1, 0.2]]], dtype=torch.float64)
+    problem, geometry = contact_problem(
+        simulator.scene, state, joint_command=command, base_twist=twist
+    )
+    slots = [k for k in range(16, 24) if bool(geometry.active[0, k])]  # forearm–box slots
+    assert slots
+    directions = tangent_directions(geometry.normals[0], simulator.scene.friction_directions)
+    eps = 1e-6
+    for k in slots:
+        local = link_local(robot, base, q_robot[0], "forearm", geometry.points[0, k])
+        normal, tangents = geometry.normals[0, k], directions[k]
+
+        def moved(t: float, rates: torch.Tensor, motion: torch.Tensor, local=local):
+            turned = torch.cat([base[:3] + t * motion[:3], _turn(base[3:], t * motion[3:])])
+            return world_point(robot, turned, q_robot[0] + t * rates, "forearm", local)
+
+        still = torch.zeros(6, dtype=torch.float64)
+        elbow = torch.tensor([0.0, 1.0], dtype=torch.float64)
+        velocity = (moved(eps, elbow, still) - moved(-eps, elbow, still)) / (2 * eps)
+        torch.testing.assert_close(problem.Jn[0, k, 6], normal @ velocity, rtol=0, atol=1e-8)
+        torch.testing.assert_close(problem.Jt[0, k, :, 6], tangents @ velocity, rtol=0, atol=1e-8)
+        shoulder = torch.tensor([0.4, 0.0], dtype=torch.float64)
+        velocity = (moved(eps, shoulder, twist[0, 0]) - moved(-eps, shoulder, twist[0, 0])) / (
+            2 * eps
+        )
+        torch.testing.assert_close(problem.bn[0, k], normal @ velocity, rtol=0, atol=1e-8)
+        torch.testing.assert_close(problem.bt[0, k], tangents @ velocity, rtol=0, atol=1e-8)
+    run = simulator.rollout(
+        state, steps=5, joint_commands=command.expand(5, 1, 2), base_twists=twist.expand(5, 1, 1, 6)
+    )
+    time = simulator.scene.h * torch.arange(6, dtype=torch.float64)
+    torch.testing.assert_close(run.q_robot[:, 0, 0], 0.4 * time, rtol=0, atol=1e-12)
+    torch.testing.assert_close(
+        run.v_robot[1:, 0, 0], torch.full((5,), 0.4, dtype=torch.float64), rtol=0, atol=1e-15
+    )

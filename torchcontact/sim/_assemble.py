@@ -182,9 +182,9 @@ def _build_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> Sce
     servo_columns: list[int | None] = []
     servo_start = 0
     for robot_member in scene.robots:
-        servo = robot_member.mode == "servo"
-        servo_columns.append(servo_start if servo else None)
-        servo_start += robot_member.dof if servo else 0
+        count = len(robot_member.servo_joints)
+        servo_columns.append(servo_start if count else None)
+        servo_start += count
 
     def constant(value: float | Tensor) -> bool:
         return not isinstance(value, Tensor) or (value.numel() == 1 and not value.requires_grad)

@@ -15,6 +15,12 @@ scene's dynamic bodies. Its actuated joints either
 * follow commanded joint velocities (``mode="kinematic"``, arms that do not yield): their
   motion enters the contact problem only through the known velocity terms ``bn``, ``bt``.
 
+A servo robot may also name ``kinematic_joints`` that follow commanded velocities while the
+others are servoed, e.g. the WAM's joints of a ``"wam7_bhand"`` driven along a planned
+trajectory while the BarrettHand's fingers yield to the object. The mass matrix of the servo
+joints is then the block of ``M(q)`` on them: the inertial forces that the kinematic joints'
+(or the base's) accelerations exert on the servo joints are neglected.
+
 Servo. A PD law with torque limits on the actuated coordinates (for the BarrettHand the coupled
 finger coordinates of :class:`~torchcontact.robots.JointCoupling`),
 
@@ -76,6 +82,9 @@ class RobotMember:
         gravity_compensation: the servo also cancels the links' weight (adds
             ``−Σ m Jcᵀ g``), as the WAM's and many hands' controllers do; the torque limit
             then bounds the PD part only.
+        kinematic_joints: names of actuated joints (:attr:`Robot.joint_names
+            <torchcontact.robots.Robot.joint_names>`) of a servo robot that follow commanded
+            velocities instead (every joint of a ``"kinematic"`` robot does).
     """
 
     name: str
@@ -86,6 +95,7 @@ class RobotMember:
     torque_limit: float | Tensor = float("inf")
     base_pose: Tensor | None = None
     gravity_compensation: bool = False
+    kinematic_joints: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str):
@@ -101,6 +111,14 @@ class RobotMember:
         if self.mode == "servo" and not self.robot.inertials:
             raise ValueError(
                 f"robot: a servo robot needs link <inertial> elements, {self.robot.name!r} has none"
+            )
+        names = self.robot.joint_names
+        if not isinstance(self.kinematic_joints, tuple) or any(
+            name not in names for name in self.kinematic_joints
+        ):
+            raise ValueError(
+                f"kinematic_joints must be a tuple of names among {list(names)}, got "
+                f"{self.kinematic_joints!r}"
             )
         if not isinstance(self.gravity_compensation, bool):
             raise ValueError(
@@ -144,6 +162,21 @@ class RobotMember:
         """The robot's actuated coordinates."""
         return self.robot.dof
 
+    @property
+    def servo_joints(self) -> tuple[int, ...]:
+        """Indices (among the actuated coordinates) of the servoed joints, the robot's
+        generalized coordinates in the contact problem."""
+        if self.mode == "kinematic":
+            return ()
+        names = self.robot.joint_names
+        return tuple(i for i, name in enumerate(names) if name not in self.kinematic_joints)
+
+    @property
+    def driven_joints(self) -> tuple[int, ...]:
+        """Indices of the joints that follow commanded velocities."""
+        servo = self.servo_joints
+        return tuple(i for i in range(self.dof) if i not in servo)
+
 
 def servo_terms(
     member: RobotMember, q: Tensor, qd: Tensor, target: Tensor, h: float
@@ -179,11 +212,11 @@ class RobotStep:
 
     Attributes:
         origins: per robot, ``(P, L, 3)`` its link frames' origins.
-        jacobians: per robot, ``(P, L, 6, dof)`` the geometric Jacobians ``[v; ω]`` of its link
-            frames' origins in the world frame.
+        jacobians: per robot, ``(P, L, 6, Ns_r)`` the geometric Jacobians ``[v; ω]`` of its
+            link frames' origins in the world frame, columns of its servo joints.
         known_twists: per robot, ``(P, L, 6)`` the links' twists ``(v, ω)`` (at each link
             origin) that do not depend on the problem's unknowns: the base's motion, plus the
-            commanded joint velocities of a kinematic robot.
+            commanded velocities of its kinematic joints.
         shape_poses: ``(P, S, 7)`` world poses of every robot's collision primitives, robots
             in scene order.
         mass: ``(P, Ns, Ns)`` the servo robots' joint-space mass matrices with the implicit
@@ -249,8 +282,13 @@ def robot_step(
                 spin, origin - base[:, None, :3]
             )
             twist = torch.cat([linear, spin], dim=-1)
-        if member.mode == "kinematic" and joint_command is not None:
-            twist = twist + (jacobian @ joint_command[:, None, span, None]).squeeze(-1)
+        servo = torch.tensor(member.servo_joints, dtype=torch.long, device=device)
+        driven = torch.tensor(member.driven_joints, dtype=torch.long, device=device)
+        if driven.numel() and joint_command is not None:
+            rates = joint_command[:, span].index_select(-1, driven)
+            twist = twist + (jacobian.index_select(-1, driven) @ rates[:, None, :, None]).squeeze(
+                -1
+            )
         for link_shape in robot.collision_shapes:
             frame = robot.link_names.index(link_shape.link)
             local = link_shape.pose.to(dtype=dtype, device=device)
@@ -258,17 +296,17 @@ def robot_step(
             orientation = _rotation_quaternion(link_rotation[:, frame] @ quat_to_matrix(local[3:]))
             shapes.append(torch.cat([position, orientation], dim=-1))
         origins.append(origin)
-        jacobians.append(jacobian)
+        jacobians.append(jacobian.index_select(-1, servo))
         known.append(twist)
-        if member.mode == "servo":
+        if servo.numel():
             target = q if joint_command is None else joint_command[:, span]
             added, torque = servo_terms(member, q, qd, target, h)
-            gravity_base = g @ rotation  # Rᵀ g, (P, 3)
-            masses.append(robot.mass_matrix(q) + torch.diag_embed(added))
             if not member.gravity_compensation:
-                torque = torque + robot.gravity_force(q, gravity_base)
-            forces.append(torque)
-            velocities.append(qd)
+                torque = torque + robot.gravity_force(q, g @ rotation)  # gravity Rᵀ g, base frame
+            mass = robot.mass_matrix(q).index_select(-1, servo).index_select(-2, servo)
+            masses.append(mass + torch.diag_embed(added.index_select(-1, servo)))
+            forces.append(torque.index_select(-1, servo))
+            velocities.append(qd.index_select(-1, servo))
     mass = _batched_block_diag(masses) if masses else q_robot.new_zeros(P, 0, 0)
     empty = q_robot.new_zeros(P, 0)
     return RobotStep(

@@ -333,7 +333,7 @@ class Scene:
     @property
     def num_servo_joints(self) -> int:
         """The actuated joints of the servo robots (generalized coordinates)."""
-        return sum(robot.dof for robot in self.robots if robot.mode == "servo")
+        return sum(len(robot.servo_joints) for robot in self.robots)
 
     @cached_property
     def robot_slot_groups(self) -> tuple[RobotSlotGroup, ...]:

@@ -369,17 +369,18 @@ class Simulator:
         if not self.scene.robots:
             assert state.v_robot is not None
             return state.q_robot, state.v_robot, state.robot_base
-        h, parts, start, servo = self.scene.h, [], 0, 0
+        h, columns, start, servo = self.scene.h, [], 0, 0
+        zero = state.q_robot.new_zeros(state.batch_shape)
         for member in self.scene.robots:
-            if member.mode == "servo":
-                parts.append(servo_velocity[..., servo : servo + member.dof])
-                servo += member.dof
-            elif joint_command is None:
-                parts.append(state.q_robot.new_zeros(*state.batch_shape, member.dof))
-            else:
-                parts.append(joint_command[..., start : start + member.dof])
-            start += member.dof
-        v_robot = torch.cat(parts, dim=-1)
+            servo_joints = member.servo_joints
+            for joint in range(member.dof):
+                if joint in servo_joints:
+                    columns.append(servo_velocity[..., servo])
+                    servo += 1
+                else:
+                    columns.append(zero if joint_command is None else joint_command[..., start])
+                start += 1
+        v_robot = torch.stack(columns, dim=-1)
         robot_base = state.robot_base
         if base_twist is not None:
             robot_base = integrate_poses(robot_base, base_twist, h)
