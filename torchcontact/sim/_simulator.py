@@ -309,8 +309,10 @@ class Simulator:
             )
         if friction is not None:
             check_batched("friction", friction, shape=(*batch, K), like=state.q, like_name="q")
-            if friction.numel() and float(friction.min()) < 0:
-                raise ValueError(f"friction must be >= 0, got minimum {float(friction.min())}")
+            if friction.numel() and float(friction.detach().min()) < 0:
+                raise ValueError(
+                    f"friction must be >= 0, got minimum {float(friction.detach().min())}"
+                )
         scene = self.scene
         for name, value, shape in (
             ("joint_command", joint_command, (*batch, scene.num_robot_joints)),
