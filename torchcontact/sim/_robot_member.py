@@ -82,9 +82,9 @@ class RobotMember:
         gravity_compensation: the servo also cancels the links' weight (adds
             ``−Σ m Jcᵀ g``), as the WAM's and many hands' controllers do; the torque limit
             then bounds the PD part only.
-        kinematic_joints: names of actuated joints (:attr:`Robot.joint_names
-            <torchcontact.robots.Robot.joint_names>`) of a servo robot that follow commanded
-            velocities instead (every joint of a ``"kinematic"`` robot does).
+        kinematic_joints: names of actuated joints
+            (:attr:`~torchcontact.robots.Robot.joint_names`) of a servo robot that follow
+            commanded velocities instead (every joint of a ``"kinematic"`` robot does).
     """
 
     name: str
