@@ -5,7 +5,16 @@ Entry point: :func:`load` (``torchcontact.robots.load("wam7")``).
 """
 
 from torchcontact.robots._coupling import JointCoupling
+from torchcontact.robots._links import LinkInertial, LinkShape
 from torchcontact.robots._load import ROBOT_NAMES, load, models_dir
 from torchcontact.robots._robot import Robot
 
-__all__ = ["ROBOT_NAMES", "JointCoupling", "Robot", "load", "models_dir"]
+__all__ = [
+    "ROBOT_NAMES",
+    "JointCoupling",
+    "LinkInertial",
+    "LinkShape",
+    "Robot",
+    "load",
+    "models_dir",
+]

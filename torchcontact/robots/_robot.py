@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from types import MappingProxyType
 from typing import overload
@@ -33,6 +34,7 @@ from torchcontact._checks import (
     read_text_file,
 )
 from torchcontact.robots._coupling import JointCoupling
+from torchcontact.robots._links import LinkInertial, LinkShape, link_inertial, link_shape
 from torchcontact.robots._urdf import UrdfModel, build_chain, parse_urdf
 
 
@@ -143,6 +145,23 @@ class Robot:
     def joint_names(self) -> tuple[str, ...]:
         """Names of the actuated joints, in the order of ``q``'s last dimension."""
         return self.coupling.actuated_names
+
+    @cached_property
+    def inertials(self) -> tuple[LinkInertial, ...]:
+        """The mass properties of every link with an URDF ``<inertial>``, in file order."""
+        return tuple(link_inertial(element) for element in self._model.inertials)
+
+    @cached_property
+    def collision_shapes(self) -> tuple[LinkShape, ...]:
+        """Every link's collision primitives from the URDF ``<collision>`` elements, in file order.
+
+        ``<box>`` is a :class:`~torchcontact.geometry.Box`, ``<sphere>`` a
+        :class:`~torchcontact.geometry.Sphere`, and ``<cylinder radius="r" length="L">`` (URDF
+        has no capsule) the :class:`~torchcontact.geometry.Capsule` of radius ``r`` around the
+        cylinder's axis segment of length ``L`` (hemispherical caps added beyond both ends);
+        each with its pose in its link's frame.
+        """
+        return tuple(link_shape(element) for element in self._model.collisions)
 
     def _constants(self, chain: Chain) -> _Kinematics:
         """Index tables and constants of ``chain``, in the chain's dtype and device."""
@@ -273,6 +292,114 @@ class Robot:
         if kin.matrix is not None:
             jacobian = jacobian @ kin.matrix
         return jacobian
+
+    def link_jacobians(self, q: Tensor) -> tuple[Tensor, Tensor]:
+        """Every link's transform and the geometric Jacobian of its frame origin.
+
+        Args:
+            q: Actuated joint coordinates ``(*B, dof)``, float32 or float64.
+
+        Returns:
+            The transforms ``(*B, L, 4, 4)`` (link frame -> world frame) and the Jacobians
+            ``(*B, L, 6, dof)`` with rows ``[v; ω]`` (world-frame velocity of each link frame's
+            origin and the link's angular velocity), ``L = len(link_names)`` in that order.
+
+        Raises:
+            ValueError: ``q`` is not a finite float tensor of shape ``(*B, dof)``.
+        """
+        q = self._check_q(q)
+        transforms, kin = self._transforms(q)
+        transforms = transforms.movedim(0, -3)  # (*B, L, 4, 4)
+        x = transforms[..., :3, 3]
+        moving = transforms.index_select(-3, kin.joint_frames)  # (*B, n_full, 4, 4)
+        z = (moving[..., :3, :3] @ kin.axes.unsqueeze(-1)).squeeze(-1)
+        o = moving[..., :3, 3]
+        lever = x.unsqueeze(-2) - o.unsqueeze(-3)  # (*B, L, n_full, 3)
+        z = z.unsqueeze(-3).expand_as(lever)
+        revolute = kin.revolute.unsqueeze(-1)
+        linear = torch.where(revolute, torch.linalg.cross(z, lever), z)
+        angular = torch.where(revolute, z, torch.zeros_like(z))
+        columns = torch.cat([linear, angular], dim=-1) * kin.ancestors.unsqueeze(-1)
+        jacobians = columns.transpose(-1, -2)
+        if kin.matrix is not None:
+            jacobians = jacobians @ kin.matrix
+        return transforms, jacobians
+
+    def _com_jacobians(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Masses ``(Li,)``, centre-of-mass Jacobians ``(*B, Li, 3, dof)``, angular Jacobians
+        ``(*B, Li, 3, dof)`` and world inertias about the centres of mass ``(*B, Li, 3, 3)`` of
+        the links with an inertial."""
+        transforms, jacobians = self.link_jacobians(q)
+        frames = torch.tensor(
+            [self.link_names.index(i.link) for i in self.inertials],
+            dtype=torch.long,
+            device=q.device,
+        )
+        masses = torch.tensor([i.mass for i in self.inertials], dtype=q.dtype, device=q.device)
+        com = torch.stack([i.com for i in self.inertials]).to(q)
+        inertia = torch.stack([i.inertia for i in self.inertials]).to(q)
+        pose, jacobian = transforms.index_select(-3, frames), jacobians.index_select(-3, frames)
+        rotation = pose[..., :3, :3]
+        arm = (rotation @ com.unsqueeze(-1)).squeeze(-1)  # com - origin, world frame
+        angular = jacobian[..., 3:, :]
+        # v_com = v_origin + ω × arm, column by column.
+        spin = torch.linalg.cross(
+            angular.transpose(-1, -2),
+            arm.unsqueeze(-2).expand(*arm.shape[:-1], angular.shape[-1], 3),
+        ).transpose(-1, -2)
+        linear = jacobian[..., :3, :] + spin
+        return masses, linear, angular, rotation @ inertia @ rotation.transpose(-1, -2)
+
+    def mass_matrix(self, q: Tensor) -> Tensor:
+        """Joint-space mass matrix ``M(q) = Σ_links m Jcᵀ Jc + Jωᵀ I_w Jω``.
+
+        ``Jc`` is the Jacobian of the link's centre of mass and ``Jω`` of its angular velocity
+        (:meth:`link_jacobians`), ``I_w`` its inertia about the centre of mass in the world
+        frame, over the links with an URDF ``<inertial>``: the kinetic energy of the links moving
+        with joint velocities ``q̇`` is ``½ q̇ᵀ M q̇`` (the base is fixed). ``M`` does not depend
+        on the base frame's orientation, so it holds for a robot placed anywhere.
+
+        Args:
+            q: Actuated joint coordinates ``(*B, dof)``, float32 or float64.
+
+        Returns:
+            ``(*B, dof, dof)`` symmetric positive semi-definite (definite when every coordinate
+            moves some mass).
+
+        Raises:
+            ValueError: ``q`` is not a finite float tensor of shape ``(*B, dof)``, or the robot
+                has no link inertials.
+        """
+        if not self.inertials:
+            raise ValueError(f"robot {self.name!r} has no link <inertial> elements")
+        masses, linear, angular, inertia = self._com_jacobians(q)
+        translational = masses[:, None, None] * (linear.transpose(-1, -2) @ linear)
+        rotational = angular.transpose(-1, -2) @ inertia @ angular
+        return (translational + rotational).sum(-3)
+
+    def gravity_force(self, q: Tensor, gravity: Tensor) -> Tensor:
+        """Generalized gravity force on the actuated coordinates, ``Σ_links m Jcᵀ g``.
+
+        Args:
+            q: Actuated joint coordinates ``(*B, dof)``, float32 or float64.
+            gravity: Gravitational acceleration in the robot's base frame ``(*B, 3)`` (m/s²),
+                same dtype and device as ``q``; its batch broadcasts with ``q``'s.
+
+        Returns:
+            ``(*B, dof)`` joint torques (N m) or forces (N) that gravity exerts.
+
+        Raises:
+            ValueError: ``q`` or ``gravity`` is not a finite float tensor of its shape, or the
+                robot has no link inertials.
+        """
+        if not self.inertials:
+            raise ValueError(f"robot {self.name!r} has no link <inertial> elements")
+        gravity = check_float("gravity", gravity)
+        check_trailing("gravity", gravity, trailing=(3,), what="(*B, 3)")
+        masses, linear, _, _ = self._com_jacobians(q)
+        check_like("gravity", gravity, reference_name="q", reference=q)
+        weight = masses.unsqueeze(-1) * gravity.unsqueeze(-2)  # (*B, Li, 3)
+        return (weight.unsqueeze(-2) @ linear).squeeze(-2).sum(-2)
 
     def contact_jacobian(
         self, q: Tensor, link: str, *, point: Tensor, normal: Tensor, tangents: Tensor

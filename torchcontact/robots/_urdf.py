@@ -65,6 +65,51 @@ class UrdfJoint:
 
 
 @dataclass(frozen=True)
+class UrdfInertial:
+    """A link's ``<inertial>``: mass, centre of mass and inertia about it.
+
+    Attributes:
+        link: The link's name.
+        mass: Mass in kg (``> 0``).
+        xyz: Centre of mass in the link frame (m).
+        rpy: Orientation of the inertia axes in the link frame (rad, as a joint origin's).
+        inertia: ``(ixx, ixy, ixz, iyy, iyz, izz)`` about the centre of mass, inertia axes
+            (kg m²).
+    """
+
+    link: str
+    mass: float
+    xyz: tuple[float, float, float]
+    rpy: tuple[float, float, float]
+    inertia: tuple[float, float, float, float, float, float]
+
+
+@dataclass(frozen=True)
+class UrdfCollision:
+    """One ``<collision>`` primitive of a link.
+
+    URDF has no capsule element: a ``<cylinder radius="r" length="L"/>`` is read as the
+    capsule of radius ``r`` around the segment of length ``L`` on the cylinder's axis (its z
+    axis), i.e. the cylinder with hemispherical caps of radius ``r`` added at both ends; the
+    ``<capsule radius length>`` element of some URDF dialects is read the same way.
+
+    Attributes:
+        link: The link's name.
+        kind: ``"box"``, ``"sphere"`` or ``"capsule"``.
+        size: box: the full side lengths ``(x, y, z)``; sphere: ``(radius,)``; capsule:
+            ``(radius, length)`` (m).
+        xyz: The primitive's centre in the link frame (m).
+        rpy: The primitive's orientation in the link frame (rad, as a joint origin's).
+    """
+
+    link: str
+    kind: str
+    size: tuple[float, ...]
+    xyz: tuple[float, float, float]
+    rpy: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
 class UrdfModel:
     """A parsed URDF tree.
 
@@ -73,12 +118,17 @@ class UrdfModel:
         root: Name of the root link (the base/world frame of the kinematics).
         links: All link names, in file order.
         joints: All joints, in file order.
+        inertials: The links' ``<inertial>`` elements, in file order (links without one have
+            none).
+        collisions: Every link's ``<collision>`` primitives, in file order.
     """
 
     name: str
     root: str
     links: tuple[str, ...]
     joints: tuple[UrdfJoint, ...]
+    inertials: tuple[UrdfInertial, ...] = ()
+    collisions: tuple[UrdfCollision, ...] = ()
 
 
 def _floats(
@@ -152,10 +202,78 @@ def _parse_joint(element: ET.Element, *, source: str) -> UrdfJoint:
     )
 
 
-def parse_urdf(text: str, *, source: str) -> UrdfModel:
-    """Parse URDF text (links, joints, origins, axes, limits, mimic tags) in float64.
+def _origin(element: ET.Element, *, where: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """The ``xyz`` and ``rpy`` of ``element``'s ``<origin>`` (zeros when absent)."""
+    origin = element.find("origin")
+    xyz = _floats(None if origin is None else origin.get("xyz"), (0.0, 0.0, 0.0), where=where)
+    rpy = _floats(None if origin is None else origin.get("rpy"), (0.0, 0.0, 0.0), where=where)
+    return xyz, rpy
 
-    Visual, collision and inertial elements are not read: torchcontact's robots are kinematic.
+
+def _number(element: ET.Element, attribute: str, *, where: str, positive: bool = True) -> float:
+    """A finite (and, with ``positive``, ``> 0``) number attribute of ``element``."""
+    text = element.get(attribute)
+    try:
+        value = float(text) if text is not None else math.nan
+    except ValueError as error:
+        raise ValueError(f"{where}: cannot read {attribute}={text!r}") from error
+    if not math.isfinite(value) or (positive and value <= 0.0):
+        kind = "a finite number > 0" if positive else "a finite number"
+        raise ValueError(f"{where}: {attribute} must be {kind}, got {text!r}")
+    return value
+
+
+def _parse_inertial(link: str, element: ET.Element, *, source: str) -> UrdfInertial:
+    where = f"{source}: link {link!r} <inertial>"
+    xyz, rpy = _origin(element, where=where)
+    mass, inertia = element.find("mass"), element.find("inertia")
+    if mass is None or inertia is None:
+        raise ValueError(f"{where}: needs <mass> and <inertia>")
+    names = ("ixx", "ixy", "ixz", "iyy", "iyz", "izz")
+    values = tuple(_number(inertia, n, where=where, positive=False) for n in names)
+    return UrdfInertial(
+        link=link,
+        mass=_number(mass, "value", where=where),
+        xyz=_vec3(xyz),
+        rpy=_vec3(rpy),
+        inertia=(values[0], values[1], values[2], values[3], values[4], values[5]),
+    )
+
+
+def _parse_collision(link: str, element: ET.Element, *, source: str) -> UrdfCollision:
+    where = f"{source}: link {link!r} <collision>"
+    xyz, rpy = _origin(element, where=where)
+    geometry = element.find("geometry")
+    primitive = None if geometry is None or len(geometry) != 1 else geometry[0]
+    if primitive is None:
+        raise ValueError(f"{where}: needs a <geometry> with one primitive")
+    size: tuple[float, ...]
+    if primitive.tag == "box":
+        size = _floats(primitive.get("size"), (math.nan,) * 3, where=where)
+        if not all(value > 0.0 for value in size):
+            raise ValueError(f"{where}: box size must be 3 numbers > 0, got {size}")
+        kind = "box"
+    elif primitive.tag == "sphere":
+        kind, size = "sphere", (_number(primitive, "radius", where=where),)
+    elif primitive.tag in ("cylinder", "capsule"):
+        radius = _number(primitive, "radius", where=where)
+        length = _number(primitive, "length", where=where, positive=False)
+        if length < 0.0:
+            raise ValueError(f"{where}: length must be >= 0, got {length}")
+        kind, size = "capsule", (radius, length)
+    else:
+        raise ValueError(
+            f"{where}: unsupported primitive <{primitive.tag}> (box, sphere, cylinder, capsule)"
+        )
+    return UrdfCollision(link=link, kind=kind, size=size, xyz=_vec3(xyz), rpy=_vec3(rpy))
+
+
+def parse_urdf(text: str, *, source: str) -> UrdfModel:
+    """Parse URDF text (links, joints, origins, axes, limits, mimic tags, inertials and
+    collision primitives) in float64.
+
+    Visual elements are not read. Collision primitives: ``<box>``, ``<sphere>``, and
+    ``<cylinder>`` read as a capsule (see :class:`UrdfCollision`); meshes are rejected.
 
     Args:
         text: The URDF document.
@@ -188,16 +306,33 @@ def parse_urdf(text: str, *, source: str) -> UrdfModel:
     roots = [link for link in links if link not in children]
     if len(roots) != 1:
         raise ValueError(f"{source}: expected one root link, found {roots}")
-    return UrdfModel(name=robot.get("name", ""), root=roots[0], links=links, joints=joints)
+    inertials: list[UrdfInertial] = []
+    collisions: list[UrdfCollision] = []
+    for link in robot.findall("link"):
+        name = link.get("name", "")
+        inertial = link.find("inertial")
+        if inertial is not None:
+            inertials.append(_parse_inertial(name, inertial, source=source))
+        collisions.extend(
+            _parse_collision(name, c, source=source) for c in link.findall("collision")
+        )
+    return UrdfModel(
+        name=robot.get("name", ""),
+        root=roots[0],
+        links=links,
+        joints=joints,
+        inertials=tuple(inertials),
+        collisions=tuple(collisions),
+    )
 
 
-def _origin_matrix(joint: UrdfJoint) -> torch.Tensor:
-    """The joint origin as a float64 homogeneous transform ``(4, 4)``: Trans(xyz) · Rz Ry Rx."""
-    roll, pitch, yaw = joint.rpy
+def origin_matrix(xyz: tuple[float, float, float], rpy: tuple[float, float, float]) -> torch.Tensor:
+    """An URDF origin as a float64 homogeneous transform ``(4, 4)``: Trans(xyz) · Rz Ry Rx."""
+    roll, pitch, yaw = rpy
     cr, sr = math.cos(roll), math.sin(roll)
     cp, sp = math.cos(pitch), math.sin(pitch)
     cy, sy = math.cos(yaw), math.sin(yaw)
-    x, y, z = joint.xyz
+    x, y, z = xyz
     return torch.tensor(
         [
             [cy * cp, cy * sp * sr - sy * cr, cy * sp * cr + sy * sr, x],
@@ -231,7 +366,7 @@ def build_chain(model: UrdfModel) -> Chain:
         else:
             pk_joint = Joint(
                 name=joint.name,
-                offset=Transform3d(matrix=_origin_matrix(joint), dtype=torch.float64),
+                offset=Transform3d(matrix=origin_matrix(joint.xyz, joint.rpy), dtype=torch.float64),
                 joint_type=joint.kind,
                 axis=torch.tensor(joint.axis, dtype=torch.float64),
                 dtype=torch.float64,

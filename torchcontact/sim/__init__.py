@@ -1,4 +1,4 @@
-"""Planar scenes and the batched time-stepping contact simulator."""
+"""Planar and spatial scenes (with robots) and the batched time-stepping contact simulator."""
 
 from torchcontact.sim._assemble import body_poses, contact_problem, slot_friction
 from torchcontact.sim._examples import pushed_box_rollout, pushed_box_scene
@@ -12,7 +12,8 @@ from torchcontact.sim._rigid_body import (
     tangent_directions,
     world_inertia,
 )
-from torchcontact.sim._scene import Body, BodyKind, Scene, SlotGroup
+from torchcontact.sim._robot_member import RobotMember, RobotMode, RobotStep, robot_step
+from torchcontact.sim._scene import Body, BodyKind, RobotSlotGroup, Scene, SlotGroup
 from torchcontact.sim._simulator import (
     SOLVED_BY_EXACT_MODE,
     SOLVED_BY_GUESS,
@@ -31,6 +32,10 @@ __all__ = [
     "UNSOLVED",
     "Body",
     "BodyKind",
+    "RobotMember",
+    "RobotMode",
+    "RobotSlotGroup",
+    "RobotStep",
     "Rollout",
     "Scene",
     "SceneState",
@@ -45,6 +50,7 @@ __all__ = [
     "penetration",
     "pushed_box_rollout",
     "pushed_box_scene",
+    "robot_step",
     "slot_friction",
     "spatial_mass_matrix",
     "tangent_basis",

@@ -28,6 +28,7 @@ from torchcontact.sim._rigid_body import (
     tangent_directions,
     world_inertia,
 )
+from torchcontact.sim._robot_member import RobotStep, robot_step
 from torchcontact.sim._scene import Scene
 from torchcontact.sim._state import SceneState
 
@@ -37,8 +38,8 @@ class SceneLayout:
     """Index tables of a scene, in one dtype and on one device, built once.
 
     The scene's shapes are ordered ``[dynamic bodies, kinematic bodies, static bodies with a
-    pose, half-planes or half-spaces]``, so that their poses are
-    ``[q, q_kinematic, static_poses]``.
+    pose, half-planes or half-spaces, robots' collision primitives]``, so that their poses are
+    ``[q, q_kinematic, static_poses, RobotStep.shape_poses]``.
 
     Attributes:
         dimension: 2 (planar) or 3 (spatial).
@@ -69,6 +70,12 @@ class SceneLayout:
             requires grad).
         inertias: ``(Nd, 3, 3)`` their body-frame inertias (spatial scenes; ``None`` when one
             requires grad).
+        slot_robot: ``(K,)`` long: the robot (index into ``Scene.robots``) whose primitive is
+            each slot's receiver, ``R`` for the bodies' slots.
+        slot_link: ``(K,)`` long: that primitive's link (index into the robot's
+            ``link_names``), 0 for the bodies' slots.
+        servo_columns: per robot, the index of its first joint among the problem's servo
+            joints (``None`` for a kinematic robot).
     """
 
     dimension: int
@@ -89,6 +96,9 @@ class SceneLayout:
     gravity_force: Tensor | None
     masses: Tensor | None
     inertias: Tensor | None
+    slot_robot: Tensor
+    slot_link: Tensor
+    servo_columns: tuple[int | None, ...]
 
 
 _LAYOUTS: weakref.WeakKeyDictionary[Scene, dict[tuple[torch.dtype, torch.device], SceneLayout]]
@@ -116,11 +126,19 @@ def _build_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> Sce
     planes = [i for i in static if isinstance(scene.bodies[i].shape, unbounded)]
     order = [*scene.dynamic, *scene.kinematic, *posed, *planes]
     shape_index = {body: s for s, body in enumerate(order)}
-    shapes = [scene.bodies[i].shape for i in order]
+    shapes: list[object] = [scene.bodies[i].shape for i in order]
     groups = [(shape_index[g.receiver], shape_index[g.other]) for g in scene.slot_groups]
+    robot_shape_start = []
+    for robot_member in scene.robots:
+        robot_shape_start.append(len(shapes))
+        shapes.extend(link_shape.shape for link_shape in robot_member.robot.collision_shapes)
+    groups.extend(
+        (robot_shape_start[g.robot] + g.shape, shape_index[g.other])
+        for g in scene.robot_slot_groups
+    )
     table: PlanarSlotTable | SpatialSlotTable
     if scene.dimension == 2:
-        table = planar_slot_table(shapes, groups, margin=scene.margin)
+        table = planar_slot_table(shapes, groups, margin=scene.margin)  # type: ignore[arg-type]
     else:
         table = spatial_slot_table(shapes, groups, margin=scene.margin)  # type: ignore[arg-type]
     static_poses = torch.zeros(len(posed) + len(planes), scene.pose_size, dtype=torch.float64)
@@ -148,6 +166,25 @@ def _build_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> Sce
         if not found:
             sources.append(friction)
         slot_friction.extend([found[0] if found else len(sources) - 1] * group.count)
+    slot_robot = torch.full((K,), len(scene.robots), dtype=torch.long)
+    slot_link = torch.zeros(K, dtype=torch.long)
+    for rgroup in scene.robot_slot_groups:
+        span = slice(rgroup.start, rgroup.start + rgroup.count)
+        columns["od"][span] = scene.dynamic.index(rgroup.other)
+        robot = scene.robots[rgroup.robot].robot
+        slot_robot[span] = rgroup.robot
+        slot_link[span] = robot.link_names.index(robot.collision_shapes[rgroup.shape].link)
+        friction = scene.pair_mu(rgroup.robot, rgroup.other, robot=True)
+        found = [k for k, source in enumerate(sources) if source is friction]
+        if not found:
+            sources.append(friction)
+        slot_friction.extend([found[0] if found else len(sources) - 1] * rgroup.count)
+    servo_columns: list[int | None] = []
+    servo_start = 0
+    for robot_member in scene.robots:
+        count = len(robot_member.servo_joints)
+        servo_columns.append(servo_start if count else None)
+        servo_start += count
 
     def constant(value: float | Tensor) -> bool:
         return not isinstance(value, Tensor) or (value.numel() == 1 and not value.requires_grad)
@@ -193,6 +230,9 @@ def _build_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> Sce
         gravity_force=gravity_force,
         masses=masses,
         inertias=inertias,
+        slot_robot=slot_robot.to(device),
+        slot_link=slot_link.to(device),
+        servo_columns=tuple(servo_columns),
     )
 
 
@@ -246,11 +286,17 @@ def body_poses(scene: Scene, state: SceneState) -> list[Tensor | None]:
     return poses
 
 
-def shape_poses(layout: SceneLayout, q: Tensor, q_kinematic: Tensor) -> Tensor:
+def shape_poses(
+    layout: SceneLayout, q: Tensor, q_kinematic: Tensor, robots: RobotStep | None = None
+) -> Tensor:
     """``(*B, Ns, 3)`` or ``(*B, Ns, 7)`` world poses of the layout's shapes, from the
-    dynamic ``(*B, Nd, ·)`` and kinematic ``(*B, Nk, ·)`` poses."""
+    dynamic ``(*B, Nd, ·)`` and kinematic ``(*B, Nk, ·)`` poses (and the robots'
+    primitives)."""
     static = layout.static_poses.expand(*q.shape[:-2], -1, q.shape[-1])
-    return torch.cat([q, q_kinematic, static], dim=-2)
+    parts = [q, q_kinematic, static]
+    if robots is not None:
+        parts.append(robots.shape_poses)
+    return torch.cat(parts, dim=-2)
 
 
 def _pick(table: Tensor, index: Tensor) -> Tensor:
@@ -288,12 +334,21 @@ def point_velocities(twist: Tensor, arm: Tensor) -> Tensor:
 
 
 def dynamic_rows(
-    layout: SceneLayout, poses: Tensor, points: Tensor, directions: Tensor, slots: Tensor
+    layout: SceneLayout,
+    poses: Tensor,
+    points: Tensor,
+    directions: Tensor,
+    slots: Tensor,
+    robots: RobotStep | None = None,
 ) -> Tensor:
-    """Rows mapping the dynamic bodies' twists to slots' relative velocities along directions.
+    """Rows mapping the dynamic bodies' twists (and the servo robots' joint velocities) to
+    slots' relative velocities along directions.
 
     A dynamic receiver contributes ``+[u, r × u]`` (``r`` from its centroid to the slot's
-    point, :func:`moment_rows`), a dynamic other body ``−[u, r × u]``, in its columns.
+    point, :func:`moment_rows`), a dynamic other body ``−[u, r × u]``, in its columns. A servo
+    robot's primitive (always a receiver) contributes ``+[u, r × u] · J_link`` in its joints'
+    columns, ``r`` from the link frame's origin and ``J_link`` that origin's world-frame
+    Jacobian: the rows of :meth:`~torchcontact.robots.Robot.contact_jacobian`.
 
     Args:
         layout: the scene's layout.
@@ -301,9 +356,11 @@ def dynamic_rows(
         points: ``(P, W, d)`` the slots' points, world frame.
         directions: ``(P, W, F, d)`` unit directions ``u`` per slot, world frame.
         slots: ``(P, W)`` long: the slots' indices among the scene's ``K``.
+        robots: the robots' :class:`~torchcontact.sim.RobotStep` (scenes with robots).
 
     Returns:
-        ``(P, W, F, n)`` rows, ``n = 3 Nd`` (planar) or ``6 Nd`` (spatial).
+        ``(P, W, F, n)`` rows, ``n = 3 Nd`` (planar) or ``6 Nd`` plus the servo joints
+        (spatial).
     """
     d = points.shape[-1]
     members = [(layout.slots.slot_receiver, layout.receiver_column, 1)]
@@ -323,11 +380,39 @@ def dynamic_rows(
         for wrench, column in zip(wrenches[1:], columns[1:], strict=True):
             block = block + torch.where(column == body, wrench, 0.0)
         blocks.append(block)
+    if robots is not None:
+        blocks.extend(_robot_rows(layout, robots, points, directions, slots))
     return torch.cat(blocks, dim=-1)
 
 
+def _robot_rows(
+    layout: SceneLayout, robots: RobotStep, points: Tensor, directions: Tensor, slots: Tensor
+) -> list[Tensor]:
+    """The servo robots' column blocks ``(P, W, F, dof)`` of :func:`dynamic_rows`."""
+    blocks = []
+    owner, link = layout.slot_robot[slots], layout.slot_link[slots]  # (P, W)
+    for r, start in enumerate(layout.servo_columns):
+        if start is None:
+            continue
+        jacobian = robots.jacobians[r]  # (P, L, 6, dof)
+        P, W = slots.shape
+        dof = jacobian.shape[-1]
+        index = link.clamp(max=jacobian.shape[1] - 1)
+        picked = jacobian.gather(1, index[..., None, None].expand(P, W, 6, dof))
+        origin = _pick(robots.origins[r], index)  # (P, W, 3)
+        wrench = moment_rows((points - origin).unsqueeze(-2), directions)  # (P, W, F, 6)
+        rows = wrench @ picked
+        blocks.append(torch.where((owner == r)[..., None, None], rows, 0.0))
+    return blocks
+
+
 def known_velocities(
-    layout: SceneLayout, poses: Tensor, points: Tensor, frames: Tensor, control: Tensor | None
+    layout: SceneLayout,
+    poses: Tensor,
+    points: Tensor,
+    frames: Tensor,
+    control: Tensor | None,
+    robots: RobotStep | None = None,
 ) -> Tensor:
     """``(P, K, F)`` the kinematic bodies' contribution to every slot's relative velocity along
     its directions: ``±u · (v + ω × r)`` of a kinematic receiver (``+``) or other body (``−``).
@@ -339,8 +424,18 @@ def known_velocities(
         frames: ``(P, K, F, d)`` unit directions per slot, world frame.
         control: ``(P, Nk, 3)`` or ``(P, Nk, 6)`` twists of the kinematic bodies, or ``None``
             (at rest).
+        robots: the robots' :class:`~torchcontact.sim.RobotStep`: a robot primitive (a
+            receiver) adds ``u · (v + ω × r)`` of its link's known twist.
     """
     known = frames.new_zeros(frames.shape[:-1])
+    if robots is not None:
+        for r, twists in enumerate(robots.known_twists):
+            index = layout.slot_link.clamp(max=twists.shape[1] - 1).expand(points.shape[0], -1)
+            twist = _pick(twists, index)  # (P, K, 6)
+            arm = points - _pick(robots.origins[r], index)
+            velocity = point_velocities(twist, arm)
+            along = (frames * velocity.unsqueeze(-2)).sum(-1)
+            known = known + torch.where((layout.slot_robot == r)[:, None], along, 0.0)
     if control is None:
         return known
     d = points.shape[-1]
@@ -373,6 +468,7 @@ class SlotState:
             :func:`~torchcontact.sim.tangent_directions`.
         known: ``(P, K, 1 + D/2)`` the known velocity terms ``bn`` and the first half of
             ``bt``.
+        robots: the robots' :class:`~torchcontact.sim.RobotStep`, ``None`` without robots.
     """
 
     layout: SceneLayout
@@ -380,13 +476,21 @@ class SlotState:
     geometry: SlotGeometry
     frames: Tensor
     known: Tensor
+    robots: RobotStep | None = None
 
 
-def slot_state(scene: Scene, q: Tensor, q_kinematic: Tensor, control: Tensor | None) -> SlotState:
+def slot_state(
+    scene: Scene,
+    q: Tensor,
+    q_kinematic: Tensor,
+    control: Tensor | None,
+    robots: RobotStep | None = None,
+) -> SlotState:
     """The :class:`SlotState` of a flat batch: dynamic poses ``q (P, Nd, ·)``, kinematic poses
-    ``q_kinematic (P, Nk, ·)`` and twists ``control (P, Nk, ·)`` (or ``None``)."""
+    ``q_kinematic (P, Nk, ·)`` and twists ``control (P, Nk, ·)`` (or ``None``), and the
+    robots (:func:`~torchcontact.sim.robot_step`, scenes with robots)."""
     layout = scene_layout(scene, q.dtype, q.device)
-    poses = shape_poses(layout, q, q_kinematic)
+    poses = shape_poses(layout, q, q_kinematic, robots)
     if isinstance(layout.slots, PlanarSlotTable):
         geometry = planar_slots(layout.slots, poses)
         normal = geometry.normals
@@ -396,8 +500,8 @@ def slot_state(scene: Scene, q: Tensor, q_kinematic: Tensor, control: Tensor | N
         half = scene.friction_directions // 2
         directions = tangent_directions(geometry.normals, scene.friction_directions)
         frames = torch.cat([geometry.normals.unsqueeze(-2), directions[..., :half, :]], dim=-2)
-    known = known_velocities(layout, poses, geometry.points, frames, control)
-    return SlotState(layout, poses, geometry, frames, known)
+    known = known_velocities(layout, poses, geometry.points, frames, control, robots)
+    return SlotState(layout, poses, geometry, frames, known, robots)
 
 
 def assemble(
@@ -437,7 +541,7 @@ def assemble(
         return t.reshape(P * K, *t.shape[2:]).index_select(0, rows_of).view(P, W, *t.shape[2:])
 
     frames = gather(slots.frames)
-    rows = dynamic_rows(layout, slots.poses, gather(geometry.points), frames, keep)
+    rows = dynamic_rows(layout, slots.poses, gather(geometry.points), frames, keep, slots.robots)
     Jt_half = rows[..., 1:, :]
     known = gather(slots.known)
     twist = v.shape[-1]
@@ -452,6 +556,12 @@ def assemble(
     else:
         M, gyroscopic = _spatial_inertia(scene, layout, slots.poses, v)
         f = f + gyroscopic
+    v_flat, f_flat = v.flatten(-2), f.flatten(-2)
+    if slots.robots is not None and slots.robots.velocity.shape[-1]:
+        robots = slots.robots
+        M = _block_diagonal(M.expand(P, -1, -1), robots.mass)
+        v_flat = torch.cat([v_flat, robots.velocity], dim=-1)
+        f_flat = torch.cat([f_flat, robots.force], dim=-1)
     if friction is not None:
         mu = gather(friction)
     elif layout.mu is not None:
@@ -464,8 +574,8 @@ def assemble(
         phi = phi.clamp(min=-scene.h * scene.recovery_speed)
     return ContactProblem.unchecked(
         M=M,
-        v=v.flatten(-2),
-        f=f.flatten(-2),
+        v=v_flat,
+        f=f_flat,
         Jn=rows[..., 0, :],
         Jt=torch.cat([Jt_half, -Jt_half], dim=-2),
         phi=phi,
@@ -474,6 +584,18 @@ def assemble(
         mask=gather(geometry.active),
         bn=known[..., 0],
         bt=torch.cat([known[..., 1:], -known[..., 1:]], dim=-1),
+    )
+
+
+def _block_diagonal(top: Tensor, bottom: Tensor) -> Tensor:
+    """``(P, a + b, a + b)`` from the blocks ``(P, a, a)`` and ``(P, b, b)``."""
+    a, b = top.shape[-1], bottom.shape[-1]
+    return torch.cat(
+        [
+            torch.cat([top, top.new_zeros(*top.shape[:-1], b)], dim=-1),
+            torch.cat([bottom.new_zeros(*bottom.shape[:-1], a), bottom], dim=-1),
+        ],
+        dim=-2,
     )
 
 
@@ -495,6 +617,30 @@ def _spatial_inertia(
     return M, torch.cat([torch.zeros_like(torque), torque], dim=-1)
 
 
+def robot_inputs(
+    scene: Scene, state: SceneState, joint_command: Tensor | None, base_twist: Tensor | None
+) -> RobotStep | None:
+    """The :class:`~torchcontact.sim.RobotStep` of a state's flattened batch ``(P,)``
+    (``None`` when the scene has no robots); commands already flat ``(P, ·)``."""
+    if not scene.robots:
+        return None
+    assert state.q_robot is not None
+    assert state.v_robot is not None
+    assert state.robot_base is not None
+    assert scene.gravity is not None
+    P = math.prod(state.batch_shape)
+    return robot_step(
+        scene.robots,
+        q_robot=state.q_robot.reshape(P, -1),
+        v_robot=state.v_robot.reshape(P, -1),
+        robot_base=state.robot_base.reshape(P, len(scene.robots), 7),
+        joint_command=joint_command,
+        base_twist=base_twist,
+        gravity=scene.gravity,
+        h=scene.h,
+    )
+
+
 def contact_problem(
     scene: Scene,
     state: SceneState,
@@ -502,6 +648,8 @@ def contact_problem(
     control: Tensor | None = None,
     force: Tensor | None = None,
     friction: Tensor | None = None,
+    joint_command: Tensor | None = None,
+    base_twist: Tensor | None = None,
 ) -> tuple[ContactProblem, SlotGeometry]:
     """Assemble the Stewart–Trinkle step of a batch of scenes.
 
@@ -524,11 +672,14 @@ def contact_problem(
         force: ``(*B, Nd, 3)`` or ``(*B, Nd, 6)`` applied generalized forces
             (``(fx, fy, τ)``, or force and torque) on the dynamic bodies, besides gravity.
         friction: ``(*B, K)`` per-slot friction overriding the scene's pair friction.
+        joint_command: ``(*B, Nj)`` the robots' joint commands (servo targets, kinematic
+            joint velocities; :meth:`Simulator.step`), or ``None``.
+        base_twist: ``(*B, R, 6)`` the robots' base twists, or ``None``.
 
     Returns:
-        The contact problem (``n = 3 Nd`` and ``D = 2``, or ``n = 6 Nd`` and the scene's
-        ``D``; ``K`` slots) and the slot geometry (points, normals from each slot's ``other``
-        body into its receiver, gaps, candidates).
+        The contact problem (``n = 3 Nd`` and ``D = 2``, or ``n = 6 Nd`` plus the servo
+        robots' joints and the scene's ``D``; ``K`` slots) and the slot geometry (points,
+        normals from each slot's ``other`` body into its receiver, gaps, candidates).
     """
     batch, K = state.batch_shape, scene.num_slots
     P, Nd, Nk = math.prod(batch), len(scene.dynamic), len(scene.kinematic)
@@ -538,7 +689,8 @@ def contact_problem(
         return None if t is None else t.reshape(P, *t.shape[len(batch) :])
 
     q, q_kinematic = state.q.reshape(P, Nd, pose), state.q_kinematic.reshape(P, Nk, pose)
-    slots = slot_state(scene, q, q_kinematic, flat(control))
+    robots = robot_inputs(scene, state, flat(joint_command), flat(base_twist))
+    slots = slot_state(scene, q, q_kinematic, flat(control), robots)
     keep = torch.arange(K, device=q.device).expand(P, K)
     problem = assemble(
         scene,

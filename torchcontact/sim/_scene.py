@@ -22,6 +22,7 @@ from torchcontact.geometry import (
     Polygon,
     Sphere,
 )
+from torchcontact.sim._robot_member import RobotMember
 
 BodyKind = Literal["dynamic", "kinematic", "static"]
 #: Shapes of planar scenes, and of spatial scenes.
@@ -159,6 +160,28 @@ class SlotGroup:
     count: int
 
 
+@dataclass(frozen=True)
+class RobotSlotGroup:
+    """The slots between one robot collision primitive and one dynamic body.
+
+    The primitive is the slots' receiver (the normal points from the body into it).
+
+    Attributes:
+        robot: index into ``Scene.robots``.
+        shape: index into that robot's :attr:`~torchcontact.robots.Robot.collision_shapes`.
+        other: index into ``Scene.bodies`` of the dynamic body.
+        start: index of the group's first slot in the scene's slot list (after every
+            :class:`SlotGroup`'s).
+        count: number of slots.
+    """
+
+    robot: int
+    shape: int
+    other: int
+    start: int
+    count: int
+
+
 @dataclass(frozen=True, eq=False)
 class Scene:
     """A scene of rigid bodies: planar (in a vertical plane) or spatial, by its shapes.
@@ -178,6 +201,12 @@ class Scene:
     directions it is ``μ pn cos(π/D)``. ``D = 8`` (the default) keeps every direction within
     8 % of the circular cone at twice the unknowns of ``D = 4`` (29 %).
 
+    Robots (spatial scenes only, :class:`~torchcontact.sim.RobotMember`): each collision
+    primitive of a robot's links touches every dynamic body (not the static or kinematic
+    bodies, nor other primitives), with the slots of its shape pair; these slots follow the
+    bodies' slots. A servo robot's actuated joints follow the dynamic bodies' twists in the
+    generalized velocity, robots in scene order: ``n = 6 Nd + Σ dof`` over the servo robots.
+
     Penetration is removed by the contacts' gap term ``φ/h``: a body found ``d`` deep would
     leave at ``d/h`` (0.5 m/s for 5 mm at h = 10 ms). ``recovery_speed`` bounds that speed:
     the gap enters the problem as ``max(φ, −h · recovery_speed)``.
@@ -196,6 +225,8 @@ class Scene:
         recovery_speed: the largest speed in m/s at which contacts push penetrating bodies
             apart; default unbounded for planar scenes and ``SPATIAL_RECOVERY_SPEED``
             (0.1 m/s) for spatial ones.
+        robots: the robots in the scene (spatial scenes), names unique among bodies and
+            robots.
     """
 
     bodies: tuple[Body, ...]
@@ -206,6 +237,7 @@ class Scene:
     margin: float = 0.02
     friction_directions: int = 8
     recovery_speed: float | None = None
+    robots: tuple[RobotMember, ...] = ()
 
     def __post_init__(self) -> None:
         if not isinstance(self.bodies, tuple) or not all(isinstance(b, Body) for b in self.bodies):
@@ -222,6 +254,17 @@ class Scene:
         check_positive("h", self.h)
         check_real("margin", self.margin, low=0.0)
         dimension = self.dimension
+        if not isinstance(self.robots, tuple) or not all(
+            isinstance(r, RobotMember) for r in self.robots
+        ):
+            raise ValueError(f"robots must be a tuple of RobotMember, got {describe(self.robots)}")
+        if self.robots and dimension != 3:
+            raise ValueError("robots: only spatial scenes can hold robots")
+        members = names + [robot.name for robot in self.robots]
+        if len(set(members)) != len(members):
+            raise ValueError(
+                f"robots must have names unique among bodies and robots, got {members}"
+            )
         if self.gravity is None:
             object.__setattr__(
                 self, "gravity", (0.0, -9.81) if dimension == 2 else (0.0, 0.0, -9.81)
@@ -246,7 +289,7 @@ class Scene:
             if not isinstance(pair, tuple) or len(pair) != 2:
                 raise ValueError(f"pair_friction keys must be name pairs, got {pair!r}")
             a, b = pair
-            if a not in names or b not in names:
+            if a not in members or b not in members:
                 raise ValueError(f"pair_friction names an unknown body pair ({a!r}, {b!r})")
             _check_friction(f"pair_friction[{pair!r}]", value)
 
@@ -277,8 +320,37 @@ class Scene:
 
     @property
     def num_dofs(self) -> int:
-        """``n``: three (planar) or six (spatial) per dynamic body."""
-        return self.twist_size * len(self.dynamic)
+        """``n``: three (planar) or six (spatial) per dynamic body, then the servo robots'
+        joints."""
+        return self.twist_size * len(self.dynamic) + self.num_servo_joints
+
+    @property
+    def num_robot_joints(self) -> int:
+        """``Nj``: the actuated joints of every robot, in robot order (the state's
+        ``q_robot``)."""
+        return sum(robot.dof for robot in self.robots)
+
+    @property
+    def num_servo_joints(self) -> int:
+        """The actuated joints of the servo robots (generalized coordinates)."""
+        return sum(len(robot.servo_joints) for robot in self.robots)
+
+    @cached_property
+    def robot_slot_groups(self) -> tuple[RobotSlotGroup, ...]:
+        """The slot groups of every robot collision primitive against every dynamic body."""
+        groups: list[RobotSlotGroup] = []
+        start = sum(group.count for group in self.slot_groups)
+        for r, member in enumerate(self.robots):
+            for s, link_shape in enumerate(member.robot.collision_shapes):
+                for body in self.dynamic:
+                    kinds = (
+                        type(link_shape.shape).__name__,
+                        type(self.bodies[body].shape).__name__,
+                    )
+                    count = SPATIAL_SLOT_COUNTS.get(kinds) or SPATIAL_SLOT_COUNTS[kinds[::-1]]
+                    groups.append(RobotSlotGroup(r, s, body, start, count))
+                    start += count
+        return tuple(groups)
 
     def index(self, name: str) -> int:
         """Index of the body called ``name``."""
@@ -314,12 +386,16 @@ class Scene:
 
     @property
     def num_slots(self) -> int:
-        """``K``, the total number of contact slots."""
-        return sum(group.count for group in self.slot_groups)
+        """``K``, the total number of contact slots (bodies' slots, then robots')."""
+        bodies = sum(group.count for group in self.slot_groups)
+        return bodies + sum(group.count for group in self.robot_slot_groups)
 
-    def pair_mu(self, a: int, b: int) -> float | Tensor:
-        """Friction coefficient between bodies ``a`` and ``b``."""
-        names = (self.bodies[a].name, self.bodies[b].name)
+    def pair_mu(self, a: int, b: int, *, robot: bool = False) -> float | Tensor:
+        """Friction coefficient between bodies ``a`` and ``b`` (with ``robot``: between the
+        robot ``a`` of ``Scene.robots`` and body ``b``; ``pair_friction`` names robots by their
+        member name)."""
+        first = self.robots[a].name if robot else self.bodies[a].name
+        names = (first, self.bodies[b].name)
         for key in (names, names[::-1]):
             if key in self.pair_friction:
                 return self.pair_friction[key]

@@ -28,7 +28,7 @@ from torchcontact.contact import (
     solve_mode,
 )
 from torchcontact.geometry import SlotGeometry
-from torchcontact.sim._assemble import assemble, slot_state
+from torchcontact.sim._assemble import assemble, robot_inputs, slot_state
 from torchcontact.sim._rigid_body import integrate_poses
 from torchcontact.sim._scene import Scene
 from torchcontact.sim._state import SceneState
@@ -82,6 +82,9 @@ class Rollout:
         normals: ``(T, *B, K, d)`` slot normals at the start of each step.
         active: ``(T, *B, K)`` slot candidate flags.
         solver: ``(T, *B)`` solver codes (see :class:`StepResult`).
+        q_robot: ``(T + 1, *B, Nj)`` the robots' joint positions (empty without robots).
+        v_robot: ``(T + 1, *B, Nj)`` their joint velocities.
+        robot_base: ``(T + 1, *B, R, 7)`` their base poses.
     """
 
     q: Tensor
@@ -94,6 +97,9 @@ class Rollout:
     normals: Tensor
     active: Tensor
     solver: Tensor
+    q_robot: Tensor | None = None
+    v_robot: Tensor | None = None
+    robot_base: Tensor | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,6 +127,12 @@ class Simulator:
     5. re-solve the exact solvers' answers with ``solve_mode`` at their modes, so that every
        accepted step is differentiable through its active modes; an entry whose re-solve is
        not consistent keeps the exact solver's raw impulses (``solver == 2``).
+
+    Robots (:class:`~torchcontact.sim.RobotMember`): before step 1 their links' world frames,
+    Jacobians and collision primitives are computed from ``q_robot`` and ``robot_base``; a
+    servo robot's joints are solved with the bodies (``q_robot⁺ = q_robot + h q̇⁺``), a
+    kinematic robot's follow the commanded velocities, and every base moves with its
+    commanded twist (``robot_base⁺`` integrated as a kinematic body's pose).
 
     The retry is for grasps: two pads pressing one body from both sides make redundant rows,
     on which Lemke's pivoting can stop with an inaccurate answer and the QP fallback, though
@@ -164,6 +176,9 @@ class Simulator:
         q: Tensor,
         v: Tensor | None = None,
         q_kinematic: Tensor | None = None,
+        q_robot: Tensor | None = None,
+        v_robot: Tensor | None = None,
+        robot_base: Tensor | None = None,
     ) -> SceneState:
         """A state from poses (twists default to zero, modes to separated).
 
@@ -178,6 +193,11 @@ class Simulator:
             v: ``(*B, Nd, 3)`` or ``(*B, Nd, 6)`` twists, default zero.
             q_kinematic: kinematic-body poses shaped like ``q`` with ``Nk`` bodies (required
                 if there are any).
+            q_robot: ``(*B, Nj)`` the robots' actuated joint positions, robots in scene
+                order (required if there are robots).
+            v_robot: ``(*B, Nj)`` their joint velocities, default zero.
+            robot_base: ``(*B, R, 7)`` world poses of the robots' base frames, default each
+                :attr:`RobotMember.base_pose`.
 
         Raises:
             ValueError: naming the argument that is not a finite float32/float64 tensor of
@@ -208,7 +228,32 @@ class Simulator:
             for name, value in (("q", q), ("q_kinematic", q_kinematic)):
                 check_unit_rows(f"{name}[..., 3:] (quaternions)", value[..., 3:])
         mode = torch.zeros(*batch, scene.num_slots, dtype=torch.long)
-        return SceneState(q=q, v=v, q_kinematic=q_kinematic, mode=mode)
+        joints, robots = scene.num_robot_joints, len(scene.robots)
+        if q_robot is None:
+            if joints:
+                raise ValueError(f"q_robot of shape (*B, {joints}) is required")
+            q_robot = q.new_zeros(*batch, 0)
+        q_robot = check_batched("q_robot", q_robot, shape=(*batch, joints), like=q, like_name="q")
+        if v_robot is None:
+            v_robot = torch.zeros_like(q_robot)
+        v_robot = check_batched("v_robot", v_robot, shape=(*batch, joints), like=q, like_name="q")
+        if robot_base is None:
+            poses = [member.base_pose for member in scene.robots]
+            stacked = torch.stack(poses) if poses else torch.zeros(0, 7)  # type: ignore[arg-type]
+            robot_base = stacked.to(q).expand(*batch, robots, 7)
+        robot_base = check_batched(
+            "robot_base", robot_base, shape=(*batch, robots, 7), like=q, like_name="q"
+        )
+        check_unit_rows("robot_base[..., 3:] (quaternions)", robot_base[..., 3:])
+        return SceneState(
+            q=q,
+            v=v,
+            q_kinematic=q_kinematic,
+            mode=mode,
+            q_robot=q_robot,
+            v_robot=v_robot,
+            robot_base=robot_base,
+        )
 
     def step(
         self,
@@ -217,6 +262,8 @@ class Simulator:
         *,
         force: Tensor | None = None,
         friction: Tensor | None = None,
+        joint_command: Tensor | None = None,
+        base_twist: Tensor | None = None,
     ) -> StepResult:
         """Advance every scene of the batch by one time step.
 
@@ -227,13 +274,21 @@ class Simulator:
             force: ``(*B, Nd, 3)`` or ``(*B, Nd, 6)`` applied generalized forces on dynamic
                 bodies.
             friction: ``(*B, K)`` per-slot friction overriding the scene's, ``>= 0``.
+            joint_command: ``(*B, Nj)`` the robots' joint commands, robots in scene order: a
+                servo robot's target positions ``q*``, a kinematic robot's joint velocities;
+                default: the servo targets are the current positions (the servo then only
+                damps the joints, it does not pull them back under a load) and kinematic
+                joints rest.
+            base_twist: ``(*B, R, 6)`` the robots' base twists ``(v, ω)`` over the step
+                (world frame, at the base frame's origin); default at rest.
 
         Returns:
             The :class:`StepResult`.
 
         Raises:
-            ValueError: naming ``state``, ``control``, ``force`` or ``friction`` when it is not
-                a finite tensor of its shape with the state's dtype (or friction is negative).
+            ValueError: naming ``state``, ``control``, ``force``, ``friction``,
+                ``joint_command`` or ``base_twist`` when it is not a finite tensor of its shape
+                with the state's dtype (or friction is negative).
         """
         if not isinstance(state, SceneState):
             raise ValueError(f"state must be a SceneState, got {type(state).__name__}")
@@ -254,11 +309,26 @@ class Simulator:
             )
         if friction is not None:
             check_batched("friction", friction, shape=(*batch, K), like=state.q, like_name="q")
-            if friction.numel() and float(friction.min()) < 0:
-                raise ValueError(f"friction must be >= 0, got minimum {float(friction.min())}")
-        solution, solver, geometry = self._step_compacted(state, control, force, friction)
+            if friction.numel() and float(friction.detach().min()) < 0:
+                raise ValueError(
+                    f"friction must be >= 0, got minimum {float(friction.detach().min())}"
+                )
+        scene = self.scene
+        for name, value, shape in (
+            ("joint_command", joint_command, (*batch, scene.num_robot_joints)),
+            ("base_twist", base_twist, (*batch, len(scene.robots), 6)),
+        ):
+            if value is not None:
+                check_batched(name, value, shape=shape, like=state.q, like_name="q")
+        solution, solver, geometry = self._step_compacted(
+            state, control, force, friction, joint_command, base_twist
+        )
         h = self.scene.h
-        v_next = solution.v_next.unflatten(-1, (num_dynamic, twist))
+        body_dofs = num_dynamic * twist
+        v_next = solution.v_next[..., :body_dofs].unflatten(-1, (num_dynamic, twist))
+        q_robot, v_robot, robot_base = self._robot_next(
+            state, solution.v_next[..., body_dofs:], joint_command, base_twist
+        )
         q_kinematic = state.q_kinematic
         if self.scene.dimension == 2:
             q_next = state.q + h * v_next
@@ -268,7 +338,15 @@ class Simulator:
             q_next = integrate_poses(state.q, v_next, h)
             if control is not None:
                 q_kinematic = integrate_poses(q_kinematic, control, h)
-        next_state = SceneState(q=q_next, v=v_next, q_kinematic=q_kinematic, mode=solution.mode)
+        next_state = SceneState(
+            q=q_next,
+            v=v_next,
+            q_kinematic=q_kinematic,
+            mode=solution.mode,
+            q_robot=q_robot,
+            v_robot=v_robot,
+            robot_base=robot_base,
+        )
         return StepResult(
             state=next_state,
             pn=solution.pn,
@@ -279,6 +357,37 @@ class Simulator:
             residual=solution.status.residual,
         )
 
+    def _robot_next(
+        self,
+        state: SceneState,
+        servo_velocity: Tensor,
+        joint_command: Tensor | None,
+        base_twist: Tensor | None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """The robots' joint positions, velocities and base poses after a step, from the servo
+        joints' solved velocities ``(*B, Ns)``."""
+        assert state.q_robot is not None
+        assert state.robot_base is not None
+        if not self.scene.robots:
+            assert state.v_robot is not None
+            return state.q_robot, state.v_robot, state.robot_base
+        h, columns, start, servo = self.scene.h, [], 0, 0
+        zero = state.q_robot.new_zeros(state.batch_shape)
+        for member in self.scene.robots:
+            servo_joints = member.servo_joints
+            for joint in range(member.dof):
+                if joint in servo_joints:
+                    columns.append(servo_velocity[..., servo])
+                    servo += 1
+                else:
+                    columns.append(zero if joint_command is None else joint_command[..., start])
+                start += 1
+        v_robot = torch.stack(columns, dim=-1)
+        robot_base = state.robot_base
+        if base_twist is not None:
+            robot_base = integrate_poses(robot_base, base_twist, h)
+        return state.q_robot + h * v_robot, v_robot, robot_base
+
     def rollout(
         self,
         state: SceneState,
@@ -287,6 +396,8 @@ class Simulator:
         controls: Tensor | None = None,
         forces: Tensor | None = None,
         strict: bool = True,
+        joint_commands: Tensor | None = None,
+        base_twists: Tensor | None = None,
     ) -> Rollout:
         """Simulate ``steps`` steps.
 
@@ -298,6 +409,9 @@ class Simulator:
             forces: ``(T, *B, Nd, 3)`` or ``(T, *B, Nd, 6)`` applied generalized forces per
                 step, or ``None``.
             strict: raise ``RuntimeError`` if some entry could not be solved.
+            joint_commands: ``(T, *B, Nj)`` the robots' joint commands per step (see
+                :meth:`step`), or ``None``.
+            base_twists: ``(T, *B, R, 6)`` the robots' base twists per step, or ``None``.
 
         Returns:
             The :class:`Rollout` (with ``steps == 0``: the initial state and empty per-step
@@ -325,6 +439,12 @@ class Simulator:
                     like=state.q,
                     like_name="q",
                 )
+        for name, value, shape in (
+            ("joint_commands", joint_commands, (steps, *batch, self.scene.num_robot_joints)),
+            ("base_twists", base_twists, (steps, *batch, len(self.scene.robots), 6)),
+        ):
+            if value is not None:
+                check_batched(name, value, shape=shape, like=state.q, like_name="q")
         if steps == 0:
             return self._empty_rollout(state)
         states, results = [state], []
@@ -333,6 +453,8 @@ class Simulator:
                 states[-1],
                 None if controls is None else controls[t],
                 force=None if forces is None else forces[t],
+                joint_command=None if joint_commands is None else joint_commands[t],
+                base_twist=None if base_twists is None else base_twists[t],
             )
             if strict and bool((result.solver == UNSOLVED).any()):
                 raise RuntimeError(f"no contact solver converged at step {t}")
@@ -349,6 +471,9 @@ class Simulator:
             normals=torch.stack([r.geometry.normals for r in results]),
             active=torch.stack([r.geometry.active for r in results]),
             solver=torch.stack([r.solver for r in results]),
+            q_robot=torch.stack([s.q_robot for s in states]),  # type: ignore[misc]
+            v_robot=torch.stack([s.v_robot for s in states]),  # type: ignore[misc]
+            robot_base=torch.stack([s.robot_base for s in states]),  # type: ignore[misc]
         )
 
     def _empty_rollout(self, state: SceneState) -> Rollout:
@@ -370,6 +495,9 @@ class Simulator:
             normals=empty(K, self.scene.dimension),
             active=empty(K, dtype=torch.bool),
             solver=empty(dtype=torch.long),
+            q_robot=state.q_robot.unsqueeze(0),  # type: ignore[union-attr]
+            v_robot=state.v_robot.unsqueeze(0),  # type: ignore[union-attr]
+            robot_base=state.robot_base.unsqueeze(0),  # type: ignore[union-attr]
         )
 
     def _step_compacted(
@@ -378,6 +506,8 @@ class Simulator:
         control: Tensor | None,
         force: Tensor | None,
         friction: Tensor | None,
+        joint_command: Tensor | None = None,
+        base_twist: Tensor | None = None,
     ) -> tuple[Solution, Tensor, SlotGeometry]:
         """Assemble and solve on the candidate slots (step 2 of the class docstring), scatter
         back.
@@ -394,7 +524,8 @@ class Simulator:
             return None if t is None else t.reshape(P, *t.shape[len(batch) :])
 
         q, q_kinematic = state.q.reshape(P, Nd, pose), state.q_kinematic.reshape(P, Nk, pose)
-        slots = slot_state(self.scene, q, q_kinematic, flat(control))
+        robots = robot_inputs(self.scene, state, flat(joint_command), flat(base_twist))
+        slots = slot_state(self.scene, q, q_kinematic, flat(control), robots)
         geometry = slots.geometry
         mask = geometry.active
         # Candidates first (in slot order), then the non-candidates by decreasing velocity
@@ -423,7 +554,7 @@ class Simulator:
 
         full = replace(
             solution,
-            v_next=solution.v_next.reshape(*batch, twist * Nd),
+            v_next=solution.v_next.reshape(*batch, solution.v_next.shape[-1]),
             pn=scatter(solution.pn),
             pt=scatter(solution.pt),
             mode=scatter(solution.mode),
