@@ -1,0 +1,257 @@
+"""Spatial simulator throughput: batched boxes on a plane vs MuJoCo, in one run, one thread.
+
+Boxes (half extents 0.5 × 0.25 × 0.25 m, 2 kg, μ = 0.5, h = 0.01 s, eight friction
+directions) on the ground: a third sliding at 1 m/s, a third tumbling (standing on an edge,
+tilted 1.2 rad, falling over), a third resting, stepped ``T`` times at B = 1, 64, 1,024 and
+4,096 scenes (best of 3 rollouts, ``torch.no_grad()``). MuJoCo (the optional ``bench`` extra)
+steps the same box in the same three states on one core, two ways: one ``mj_step`` loop per
+state (what a user stepping one box writes), and ``mujoco.rollout`` with one model per scene and
+one ``MjData`` (one thread) over the same batch of B = 4,096 initial states. The faster of the two
+is the per-core reference of the ratios. Prints a markdown table and writes
+``benchmarks/results/bench_sim3d.json``.
+
+    python benchmarks/bench_sim3d.py [--quick] [--profile]
+
+``--profile`` prints torch.profiler's top operators for one step at B = 4,096.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.metadata
+import importlib.util
+import json
+import platform
+import time
+from pathlib import Path
+
+import torch
+from _timing import pin_to_quietest_cpu  # benchmarks/ is on sys.path when run as a script
+
+from torchcontact.geometry import Box, HalfSpace
+from torchcontact.sim import SOLVED_BY_GUESS, Body, Scene, SceneState, Simulator
+
+RESULTS = Path(__file__).resolve().parent / "results" / "bench_sim3d.json"
+HALF_EXTENTS = (0.5, 0.25, 0.25)
+MASS, FRICTION, H = 2.0, 0.5, 0.01
+TILT = 1.2  # rad, the tumbling third's initial rotation about −y (standing on an edge)
+MUJOCO_BOX = f"""
+<mujoco>
+  <option timestep="{H}"/>
+  <worldbody>
+    <geom type="plane" size="50 50 0.1" friction="{FRICTION}"/>
+    <body pos="0 0 {HALF_EXTENTS[2]}">
+      <freejoint/>
+      <geom type="box" size="{" ".join(map(str, HALF_EXTENTS))}" mass="{MASS}"
+            friction="{FRICTION}"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def box_poses(count: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(count, 7)`` poses and ``(count, 6)`` twists: sliding at 1 m/s along x, standing on an
+    edge tilted by :data:`TILT` (tumbling), or resting, in turn."""
+    kind = torch.arange(count) % 3
+    theta = torch.where(kind == 1, TILT, 0.0).to(torch.float64)
+    # A rotation by θ about −y maps the x–z plane like the planar rotation by θ maps x–y; the
+    # edge through the corner (−a, ·, −c) is put on the ground at the origin.
+    a, c = HALF_EXTENTS[0], HALF_EXTENTS[2]
+    cos, sin = torch.cos(theta), torch.sin(theta)
+    x = -(cos * -a - sin * -c)
+    z = -(sin * -a + cos * -c)
+    q = torch.zeros(count, 7, dtype=torch.float64)
+    q[:, 0], q[:, 2] = x, z
+    q[:, 3], q[:, 5] = torch.cos(theta / 2), -torch.sin(theta / 2)
+    v = torch.zeros(count, 6, dtype=torch.float64)
+    v[:, 0] = torch.where(kind == 0, 1.0, 0.0)
+    return q, v
+
+
+def box_states(sim: Simulator, count: int) -> SceneState:
+    q, v = box_poses(count)
+    return sim.initial_state(q=q.unsqueeze(1), v=v.unsqueeze(1))
+
+
+def time_torchcontact(sim: Simulator, count: int, steps: int, repeats: int) -> tuple[float, float]:
+    """Best seconds of ``repeats`` rollouts of ``steps`` steps of ``count`` scenes, and the
+    share of box-steps solved without an exact solver."""
+    state = box_states(sim, count)
+    best, fast = float("inf"), 0.0
+    with torch.no_grad():
+        sim.rollout(state, steps=2)  # warm-up
+        for _ in range(repeats):
+            start = time.perf_counter()
+            run = sim.rollout(state, steps=steps)
+            best = min(best, time.perf_counter() - start)
+            fast = float((run.solver == SOLVED_BY_GUESS).double().mean())
+    return best, fast
+
+
+def mujoco_states(count: int) -> tuple[object, list[list[float]]]:
+    """The MuJoCo model and its qpos + qvel for the :func:`box_poses` states (a free joint's
+    qvel is the linear velocity in the world frame and the angular one in the body frame; the
+    states start at rest or translating, so both agree)."""
+    import mujoco  # an optional dependency (the bench extra)
+
+    model = mujoco.MjModel.from_xml_string(MUJOCO_BOX)
+    q, v = box_poses(count)
+    return model, torch.cat([q, v], dim=-1).tolist()
+
+
+def time_mujoco_loop(steps: int, repeats: int) -> float:
+    """Best steps/s of ``repeats`` runs of one ``mj_step`` loop per state (three states,
+    ``steps`` steps each)."""
+    import mujoco
+
+    model, states = mujoco_states(3)
+    data = mujoco.MjData(model)
+    best = float("inf")
+    for _ in range(repeats):
+        elapsed = 0.0
+        for state in states:
+            mujoco.mj_resetData(model, data)
+            data.qpos[:], data.qvel[:] = state[:7], state[7:]
+            mujoco.mj_forward(model, data)
+            start = time.perf_counter()
+            for _ in range(steps):
+                mujoco.mj_step(model, data)
+            elapsed += time.perf_counter() - start
+        best = min(best, elapsed)
+    return 3 * steps / best
+
+
+def time_mujoco_rollout(count: int, steps: int, repeats: int) -> float:
+    """Best steps/s of ``repeats`` ``mujoco.rollout`` calls: ``count`` models, one ``MjData``
+    (so one thread), ``steps`` steps each."""
+    import mujoco
+    import numpy as np
+    from mujoco import rollout
+
+    model, states = mujoco_states(count)
+    data = mujoco.MjData(model)
+    full = np.zeros((count, mujoco.mj_stateSize(model, mujoco.mjtState.mjSTATE_FULLPHYSICS)))
+    for b, state in enumerate(states):
+        mujoco.mj_resetData(model, data)
+        data.qpos[:], data.qvel[:] = state[:7], state[7:]
+        mujoco.mj_getState(model, data, full[b], mujoco.mjtState.mjSTATE_FULLPHYSICS)
+    models = [model] * count
+    rollout.rollout(models, data, full, nstep=2)  # warm-up
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        rollout.rollout(models, data, full, nstep=steps)
+        best = min(best, time.perf_counter() - start)
+    return count * steps / best
+
+
+def profile_one_step(sim: Simulator, count: int) -> None:
+    """Print torch.profiler's top operators (self CPU time) for one step of ``count`` scenes."""
+    from torch.profiler import ProfilerActivity, profile
+
+    state = box_states(sim, count)
+    with torch.no_grad():
+        sim.step(state)  # warm-up
+        with profile(activities=[ProfilerActivity.CPU], with_stack=True) as prof:
+            sim.step(state)
+    print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))
+    print(prof.key_averages(group_by_stack_n=6).table(sort_by="self_cpu_time_total", row_limit=15))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--quick", action="store_true", help="small sizes, for smoke tests")
+    parser.add_argument("--profile", action="store_true", help="profile one step at B = 4,096")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    cpu = pin_to_quietest_cpu(probes=2 if args.quick else 5)
+    scene = Scene(
+        bodies=(
+            Body("ground", HalfSpace.ground(), kind="static"),
+            Body("box", Box(list(HALF_EXTENTS)), mass=MASS),
+        ),
+        gravity=(0.0, 0.0, -9.81),
+        friction=FRICTION,
+        h=H,
+        friction_directions=8,
+    )
+    sim = Simulator(scene)
+    if args.profile:
+        profile_one_step(sim, 4096)
+        return
+    sizes = (1, 64) if args.quick else (1, 64, 1024, 4096)
+    steps = 10 if args.quick else 100
+    repeats = 1 if args.quick else 3
+
+    have_mujoco = importlib.util.find_spec("mujoco") is not None
+    mujoco_loop = mujoco_rollout = None
+    if have_mujoco:
+        mujoco_loop = time_mujoco_loop(20 * steps, repeats)
+        mujoco_rollout = time_mujoco_rollout(max(sizes), steps, repeats)
+    reference = max(mujoco_loop or 0.0, mujoco_rollout or 0.0) or None
+
+    rows = []
+    for count in sizes:
+        seconds, fast = time_torchcontact(sim, count, steps, repeats)
+        rate = count * steps / seconds
+        rows.append(
+            {
+                "B": count,
+                "box_steps_per_s": rate,
+                "ms_per_step": 1e3 * seconds / steps,
+                "fast_path_share": fast,
+                "ratio_to_mujoco_loop": None if mujoco_loop is None else rate / mujoco_loop,
+                "ratio_to_mujoco_rollout": (
+                    None if mujoco_rollout is None else rate / mujoco_rollout
+                ),
+            }
+        )
+
+    machine = platform.processor() or platform.machine()
+    print(f"Spatial box simulation, one thread, {machine}, torch {torch.__version__}")
+    if reference is None:
+        print("MuJoCo not installed (pip install -e '.[bench]'): no reference column.")
+    else:
+        print(f"MuJoCo mj_step loop, one box: {mujoco_loop:,.0f} steps/s on one core")
+        print(f"MuJoCo rollout, {max(sizes):,} models, one thread: {mujoco_rollout:,.0f} steps/s")
+    print()
+    print("| B | ms / step | box-steps / s | fast path | vs MuJoCo loop | vs MuJoCo rollout |")
+    print("|---:|---:|---:|---:|---:|---:|")
+    for row in rows:
+        ratios = [
+            "n/a" if row[key] is None else f"{row[key]:.3f}×"
+            for key in ("ratio_to_mujoco_loop", "ratio_to_mujoco_rollout")
+        ]
+        print(
+            f"| {row['B']:,} | {row['ms_per_step']:.2f} | {row['box_steps_per_s']:,.0f} "
+            f"| {100 * row['fast_path_share']:.0f}% | {ratios[0]} | {ratios[1]} |"
+        )
+    if reference is not None:
+        ratio = rows[-1]["box_steps_per_s"] / reference
+        verdict = "met" if ratio >= 1.0 else "not met"
+        print(
+            f"\nTarget box-steps/s at B = {rows[-1]['B']:,} ≥ 1.0× MuJoCo per core: "
+            f"{ratio:.3f}×, {verdict}"
+        )
+    if not args.quick:
+        RESULTS.parent.mkdir(parents=True, exist_ok=True)
+        payload = {
+            "machine": platform.platform(),
+            "cpu": cpu,
+            "torch": torch.__version__,
+            "mujoco": None if not have_mujoco else importlib.metadata.version("mujoco"),
+            "threads": torch.get_num_threads(),
+            "steps": steps,
+            "repeats": repeats,
+            "mujoco_loop_steps_per_s": mujoco_loop,
+            "mujoco_rollout_steps_per_s": mujoco_rollout,
+            "mujoco_rollout_batch": max(sizes),
+            "rows": rows,
+        }
+        RESULTS.write_text(json.dumps(payload, indent=2))
+        print(f"\nwrote {RESULTS}")
+
+
+if __name__ == "__main__":
+    main()
