@@ -147,16 +147,24 @@ def time_mujoco_rollout(count: int, steps: int, repeats: int) -> float:
 
 
 def profile_one_step(sim: Simulator, count: int) -> None:
-    """Print torch.profiler's top operators (self CPU time) for one step of ``count`` scenes."""
+    """Print torch.profiler's top operators (self CPU time) and cProfile's torchcontact functions
+    (cumulative time) for one step of ``count`` scenes, after three steps (as in a rollout,
+    where the previous modes are known)."""
+    import cProfile
+    import pstats
+
     from torch.profiler import ProfilerActivity, profile
 
     state = box_states(sim, count)
     with torch.no_grad():
-        sim.step(state)  # warm-up
-        with profile(activities=[ProfilerActivity.CPU], with_stack=True) as prof:
+        for _ in range(3):  # warm-up: the first step starts from unknown modes
+            state = sim.step(state).state
+        with profile(activities=[ProfilerActivity.CPU]) as prof:
             sim.step(state)
+        profiler = cProfile.Profile()
+        profiler.runcall(sim.step, state)
     print(prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25))
-    print(prof.key_averages(group_by_stack_n=6).table(sort_by="self_cpu_time_total", row_limit=15))
+    pstats.Stats(profiler).sort_stats("cumulative").print_stats("torchcontact", 30)
 
 
 def main() -> None:

@@ -191,7 +191,8 @@ print(f"above the threshold: smallest tilt {float(above.min()):.3f} rad")
 
 # %% [markdown]
 # Below the threshold the box slides with the pusher (travel / push = 1) without tilting; above it
-# the box pivots on its front edge and hardly slides.
+# the box pivots on its far bottom edge, which stays put (its centre still moves forward as it
+# rotates).
 #
 # ## A box tumbling onto the ground, in 3D
 #
