@@ -3,11 +3,12 @@
 Boxes (half extents 0.5 × 0.25 × 0.25 m, 2 kg, μ = 0.5, h = 0.01 s, eight friction
 directions) on the ground: a third sliding at 1 m/s, a third tumbling (standing on an edge,
 tilted 1.2 rad, falling over), a third resting, stepped ``T`` times at B = 1, 64, 1,024 and
-4,096 scenes (best of 3 rollouts, ``torch.no_grad()``). MuJoCo (the optional ``bench`` extra)
-steps the same box in the same three states on one core, two ways: one ``mj_step`` loop per
-state (what a user stepping one box writes), and ``mujoco.rollout`` with one model per scene and
-one ``MjData`` (one thread) over the same batch of B = 4,096 initial states. The faster of the two
-is the per-core reference of the ratios. Prints a markdown table and writes
+4,096 scenes (``torch.no_grad()``). MuJoCo (the optional ``bench`` extra) steps the same box in
+the same three states on one core, two ways: one ``mj_step`` loop per state (what a user
+stepping one box writes), and ``mujoco.rollout`` with one model per scene and one ``MjData``
+(one thread) over the same batch of B = 4,096 initial states. The faster of the two is the
+per-core reference of the ratios. Every measurement runs once per round, in turn, for 3 rounds,
+and keeps its best. Prints a markdown table and writes
 ``benchmarks/results/bench_sim3d.json``.
 
     python benchmarks/bench_sim3d.py [--quick] [--profile]
@@ -23,6 +24,7 @@ import importlib.util
 import json
 import platform
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import torch
@@ -74,19 +76,27 @@ def box_states(sim: Simulator, count: int) -> SceneState:
     return sim.initial_state(q=q.unsqueeze(1), v=v.unsqueeze(1))
 
 
-def time_torchcontact(sim: Simulator, count: int, steps: int, repeats: int) -> tuple[float, float]:
-    """Best seconds of ``repeats`` rollouts of ``steps`` steps of ``count`` scenes, and the
-    share of box-steps solved without an exact solver."""
+def torchcontact_timer(sim: Simulator, count: int, steps: int) -> Callable[[], float]:
+    """A timer of ``steps`` steps of ``count`` scenes: each call returns box-steps/s of one
+    rollout (warmed up once here)."""
     state = box_states(sim, count)
-    best, fast = float("inf"), 0.0
     with torch.no_grad():
-        sim.rollout(state, steps=2)  # warm-up
-        for _ in range(repeats):
+        sim.rollout(state, steps=2)
+
+    def measure() -> float:
+        with torch.no_grad():
             start = time.perf_counter()
-            run = sim.rollout(state, steps=steps)
-            best = min(best, time.perf_counter() - start)
-            fast = float((run.solver == SOLVED_BY_GUESS).double().mean())
-    return best, fast
+            sim.rollout(state, steps=steps)
+            return count * steps / (time.perf_counter() - start)
+
+    return measure
+
+
+def fast_path_share(sim: Simulator, count: int, steps: int) -> float:
+    """The share of box-steps solved without an exact solver."""
+    with torch.no_grad():
+        run = sim.rollout(box_states(sim, count), steps=steps)
+    return float((run.solver == SOLVED_BY_GUESS).double().mean())
 
 
 def mujoco_states(count: int) -> tuple[object, list[list[float]]]:
@@ -100,15 +110,15 @@ def mujoco_states(count: int) -> tuple[object, list[list[float]]]:
     return model, torch.cat([q, v], dim=-1).tolist()
 
 
-def time_mujoco_loop(steps: int, repeats: int) -> float:
-    """Best steps/s of ``repeats`` runs of one ``mj_step`` loop per state (three states,
-    ``steps`` steps each)."""
+def mujoco_loop_timer(steps: int) -> Callable[[], float]:
+    """A timer of one ``mj_step`` loop per state (three states, ``steps`` steps each): each call
+    returns steps/s."""
     import mujoco
 
     model, states = mujoco_states(3)
     data = mujoco.MjData(model)
-    best = float("inf")
-    for _ in range(repeats):
+
+    def measure() -> float:
         elapsed = 0.0
         for state in states:
             mujoco.mj_resetData(model, data)
@@ -118,13 +128,14 @@ def time_mujoco_loop(steps: int, repeats: int) -> float:
             for _ in range(steps):
                 mujoco.mj_step(model, data)
             elapsed += time.perf_counter() - start
-        best = min(best, elapsed)
-    return 3 * steps / best
+        return 3 * steps / elapsed
+
+    return measure
 
 
-def time_mujoco_rollout(count: int, steps: int, repeats: int) -> float:
-    """Best steps/s of ``repeats`` ``mujoco.rollout`` calls: ``count`` models, one ``MjData``
-    (so one thread), ``steps`` steps each."""
+def mujoco_rollout_timer(count: int, steps: int) -> Callable[[], float]:
+    """A timer of ``mujoco.rollout`` with ``count`` models and one ``MjData`` (so one thread),
+    ``steps`` steps each: each call returns steps/s."""
     import mujoco
     import numpy as np
     from mujoco import rollout
@@ -138,12 +149,13 @@ def time_mujoco_rollout(count: int, steps: int, repeats: int) -> float:
         mujoco.mj_getState(model, data, full[b], mujoco.mjtState.mjSTATE_FULLPHYSICS)
     models = [model] * count
     rollout.rollout(models, data, full, nstep=2)  # warm-up
-    best = float("inf")
-    for _ in range(repeats):
+
+    def measure() -> float:
         start = time.perf_counter()
         rollout.rollout(models, data, full, nstep=steps)
-        best = min(best, time.perf_counter() - start)
-    return count * steps / best
+        return count * steps / (time.perf_counter() - start)
+
+    return measure
 
 
 def profile_one_step(sim: Simulator, count: int) -> None:
@@ -192,23 +204,30 @@ def main() -> None:
     steps = 10 if args.quick else 100
     repeats = 1 if args.quick else 3
 
+    # Every timer runs once per round, in turn, and keeps its best: on a shared machine the
+    # load changes during a run, and interleaving exposes every method to the same load.
+    timers = {count: torchcontact_timer(sim, count, steps) for count in sizes}
     have_mujoco = importlib.util.find_spec("mujoco") is not None
-    mujoco_loop = mujoco_rollout = None
     if have_mujoco:
-        mujoco_loop = time_mujoco_loop(20 * steps, repeats)
-        mujoco_rollout = time_mujoco_rollout(max(sizes), steps, repeats)
+        timers["mujoco_loop"] = mujoco_loop_timer(20 * steps)
+        timers["mujoco_rollout"] = mujoco_rollout_timer(max(sizes), steps)
+    best = dict.fromkeys(timers, 0.0)
+    for _ in range(repeats):
+        for key, measure in timers.items():
+            best[key] = max(best[key], measure())
+    mujoco_loop = best.get("mujoco_loop")
+    mujoco_rollout = best.get("mujoco_rollout")
     reference = max(mujoco_loop or 0.0, mujoco_rollout or 0.0) or None
 
     rows = []
     for count in sizes:
-        seconds, fast = time_torchcontact(sim, count, steps, repeats)
-        rate = count * steps / seconds
+        rate = best[count]
         rows.append(
             {
                 "B": count,
                 "box_steps_per_s": rate,
-                "ms_per_step": 1e3 * seconds / steps,
-                "fast_path_share": fast,
+                "ms_per_step": 1e3 * count / rate,
+                "fast_path_share": fast_path_share(sim, count, steps),
                 "ratio_to_mujoco_loop": None if mujoco_loop is None else rate / mujoco_loop,
                 "ratio_to_mujoco_rollout": (
                     None if mujoco_rollout is None else rate / mujoco_rollout

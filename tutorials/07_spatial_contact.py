@@ -149,7 +149,9 @@ fig.savefig(OUT / "07_incline.png", dpi=80)
 # at height `H`. The push `F` makes the cube slide once `F = μ m g` and tip over its front edge
 # once `F H = m g w / 2`; whichever comes first wins, so it tips iff `H > w / (2 μ) = 0.125 m`.
 # The heights are a batch: the kinematic poses `q_kinematic` differ per scene, and one rollout
-# sweeps them all. The box's tilt after 60 steps (3 cm of push) shows the threshold.
+# sweeps them all. The box's tilt after 60 steps (3 cm of push) shows the threshold. The box
+# starts sliding at the pusher's speed: from rest, the first step would add the impulse `m v`
+# to the push, a kick that tips the box from slightly lower heights.
 
 # %%
 w, mu_tip, pusher_radius = 0.2, 0.8, 0.02
@@ -169,7 +171,9 @@ ratios = torch.linspace(0.8, 1.2, 6 if FAST else 40)
 count, steps = len(ratios), 60
 pusher = at(-w / 2 - pusher_radius, 0.0, count).clone()
 pusher[:, 0, 2] = ratios * threshold
-state = simulator.initial_state(q=at(0.0, w / 2, count), q_kinematic=pusher)
+v = torch.zeros(count, 1, 6)
+v[..., 0] = 0.05
+state = simulator.initial_state(q=at(0.0, w / 2, count), v=v, q_kinematic=pusher)
 controls = torch.zeros(steps, count, 1, 6)
 controls[..., 0] = 0.05
 run = simulator.rollout(state, steps=steps, controls=controls)
