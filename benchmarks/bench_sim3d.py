@@ -13,7 +13,8 @@ and keeps its best. Prints a markdown table and writes
 
     python benchmarks/bench_sim3d.py [--quick] [--profile]
 
-``--profile`` prints torch.profiler's top operators for one step at B = 4,096.
+``--profile`` prints torch.profiler's top operators and cProfile's torchcontact functions for
+one step at B = 4,096.
 """
 
 from __future__ import annotations
