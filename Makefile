@@ -51,6 +51,8 @@ bench: venv
 	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,docs,sweep,bench]"
 	$(PY) benchmarks/bench_contact.py
 	$(PY) benchmarks/bench_sim.py
+	$(PY) benchmarks/bench_sim3d.py
+	$(PY) benchmarks/accuracy_sim3d.py
 	$(PY) benchmarks/bench_robots.py
 
 clean:

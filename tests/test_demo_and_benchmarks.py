@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import re
@@ -37,6 +38,42 @@ def test_contact_benchmark_quick_mode_prints_its_table() -> None:
     )
     rows = [line for line in result.stdout.splitlines() if line.startswith("| 100 |")]
     assert len(rows) == 4
+
+
+def run_quick(script: str) -> str:
+    """The stdout of ``benchmarks/<script> --quick``."""
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / script), "--quick"],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=ROOT,
+    )
+    return result.stdout
+
+
+def test_spatial_simulator_benchmark_quick_mode_prints_its_table() -> None:
+    stdout = run_quick("bench_sim3d.py")
+    rows = [line.split("|") for line in stdout.splitlines() if line.startswith(("| 1 |", "| 64 |"))]
+    assert len(rows) == 2
+    assert all(float(row[3].replace(",", "")) > 0 for row in rows)  # box-steps / s
+
+
+def test_spatial_accuracy_benchmark_quick_mode_meets_the_closed_forms() -> None:
+    """torchcontact's row against the closed forms: no creep on a 20° incline with μ = 0.5,
+    a rolling sphere at (5/7) g sin 30°, and the tipping height w / (2 μ) within the quick
+    bisection's resolution (the midpoint after 5 halvings of [0.6, 1.5] × the threshold is
+    within 0.9 / 64 of it)."""
+    stdout = run_quick("accuracy_sim3d.py")
+    lines = [line.split("|") for line in stdout.splitlines() if line.startswith("| ")]
+    rows = {line[1].strip(): line for line in lines}
+    ours = rows["torchcontact"]
+    assert abs(float(ours[2])) <= 1e-9  # creep, m/s
+    assert abs(float(ours[3])) <= 1e-9  # steady creep, m/s
+    assert abs(float(ours[5].rstrip("% "))) <= 100 * 0.9 / 64  # tipping error, percent
+    assert abs(float(ours[7])) <= 1e-6  # rolling acceleration, relative error
+    if importlib.util.find_spec("mujoco") is not None:
+        assert {"MuJoCo, defaults", "MuJoCo, elliptic + noslip 10"} <= rows.keys()
 
 
 @pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="no CPU affinity here")
