@@ -8,6 +8,7 @@ along ``+x``.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import pytest
 import torch
@@ -223,3 +224,63 @@ def test_random_drops_never_gain_energy() -> None:
     energy = kinetic + mass * G * run.q[:, :, 0, 2]
     assert float((energy[1:] - energy[:-1])[:, solved].max()) <= 1e-9
     assert float(energy[-1].max()) < float(energy[0].min())  # it came to rest
+
+
+@pytest.mark.parametrize("angle", [math.pi / 8, math.pi / 5, math.pi / 3])
+def test_sliding_off_the_friction_directions_decelerates_within_the_polyhedral_bounds(
+    angle: float,
+) -> None:
+    """The 8-direction cone is inscribed in the circular one: a box sliding between friction
+    directions loses between μ g h cos(π/8) and μ g h of speed per step (mid-face at π/8)."""
+    mu, h, v0 = 0.4, 0.01, 1.0
+    ground = Body("ground", HalfSpace.ground(), kind="static")
+    scene = Scene(bodies=(ground, Body("box", Box([0.2, 0.1, 0.05]), mass=1.0)), friction=mu, h=h)
+    simulator = Simulator(scene)
+    v = torch.zeros(1, 1, 6, dtype=torch.float64)
+    v[..., 0], v[..., 1] = v0 * math.cos(angle), v0 * math.sin(angle)
+    run = simulator.rollout(simulator.initial_state(q=resting(0.05), v=v), steps=10)
+    speed = run.v[:, 0, 0, :2].norm(dim=-1)
+    loss = speed[:-1] - speed[1:]
+    low, high = mu * G * h * math.cos(math.pi / 8), mu * G * h
+    assert float(loss.min()) >= low * (1 - 1e-9)
+    assert float(loss.max()) <= high * (1 + 1e-9)
+    if angle == math.pi / 8:  # exactly mid-face: the lower bound, straight on
+        torch.testing.assert_close(loss, torch.full_like(loss, low), rtol=1e-9, atol=0.0)
+
+
+def test_rollout_gradients_equal_richardson_finite_differences() -> None:
+    """A box sliding and turning on the ground for five steps: gradients of its final pose
+    and twist with respect to the pair friction and the initial twist, against central
+    differences extrapolated from two steps (the modes stay the same under the perturbation)."""
+    mu = torch.tensor(0.35, dtype=torch.float64, requires_grad=True)
+    v0 = torch.tensor([[[0.8, 0.3, 0.0, 0.0, 0.0, 1.5]]], dtype=torch.float64, requires_grad=True)
+    weights = torch.randn(13, dtype=torch.float64, generator=torch.Generator().manual_seed(5))
+
+    def loss(friction: torch.Tensor, twist: torch.Tensor) -> torch.Tensor:
+        ground = Body("ground", HalfSpace.ground(), kind="static")
+        box = Body("box", Box([0.2, 0.1, 0.05]), mass=1.0)
+        scene = Scene(bodies=(ground, box), pair_friction={("box", "ground"): friction})
+        simulator = Simulator(scene)
+        run = simulator.rollout(simulator.initial_state(q=resting(0.05), v=twist), steps=5)
+        return (torch.cat([run.q[-1, 0, 0], run.v[-1, 0, 0]]) * weights).sum()
+
+    grad_mu, grad_v = torch.autograd.grad(loss(mu, v0), (mu, v0))
+
+    def richardson(fn: Callable[[float], torch.Tensor], step: float) -> torch.Tensor:
+        def central(e: float) -> torch.Tensor:
+            return (fn(e) - fn(-e)) / (2 * e)
+
+        return (4 * central(step / 2) - central(step)) / 3
+
+    with torch.no_grad():
+        fd_mu = richardson(lambda e: loss(mu + e, v0), 1e-4)
+        fd_v = torch.stack(
+            [
+                richardson(
+                    lambda e, i=i: loss(mu, v0 + e * torch.eye(6, dtype=torch.float64)[i]), 1e-4
+                )
+                for i in range(6)
+            ]
+        )
+    torch.testing.assert_close(grad_mu, fd_mu, rtol=1e-6, atol=1e-9)
+    torch.testing.assert_close(grad_v.reshape(6), fd_v, rtol=1e-6, atol=1e-9)
