@@ -22,7 +22,10 @@ and :func:`replay` runs an estimator over logs, scored as in the experiment.
 Fitting (:mod:`torchcontact.filters`): :func:`sliding_logs` simulates boxes sliding to a stop
 under a noisy camera (:class:`SlidingFit` holds the settings), :func:`sliding_evidence` is the
 contact RBPF's evidence of friction and camera noise over them, and :data:`FITTERS` maximize
-it by gradient, over a grid and by CMA-ES.
+it by gradient, over a grid and by CMA-ES. :func:`grasp_fit_logs` simulates trials of the
+triangle grasp with a launched triangle (:class:`GraspFit` holds the settings) and
+:func:`grasp_fit_evidence` is the grasp RBPF's evidence of the ground friction and camera
+noise over them.
 """
 
 from torchcontact._checks import check_choice, check_int, check_name, check_real
@@ -39,11 +42,21 @@ from torchcontact.experiments._friction_fit import (
     FIT_METHODS,
     FITTERS,
     FitOutcome,
+    FitSearch,
     SlidingFit,
     SlidingLogs,
     box_scene,
     sliding_evidence,
     sliding_logs,
+)
+from torchcontact.experiments._grasp_fit import (
+    GraspFit,
+    GraspFitLogs,
+    camera_std,
+    grasp_fit_evidence,
+    grasp_fit_logs,
+    grasp_fit_scene,
+    launched_grasps,
 )
 from torchcontact.experiments._grasp_logs import (
     FINGER_JOINTS,
@@ -83,6 +96,7 @@ from torchcontact.experiments._triangle_grasp import (
     calibrate_pf,
     evaluate_tracking,
     grasp_contact_model,
+    grasp_controls,
     grasp_mode_table,
     grasp_schedule,
     grasp_summary,
@@ -119,6 +133,9 @@ __all__ = [
     "EstimatorRuns",
     "Evaluation",
     "FitOutcome",
+    "FitSearch",
+    "GraspFit",
+    "GraspFitLogs",
     "GraspTrials",
     "PegLearning",
     "PotentialShaping",
@@ -133,6 +150,7 @@ __all__ = [
     "belief_features",
     "box_scene",
     "calibrate_pf",
+    "camera_std",
     "check_choice",
     "check_int",
     "check_name",
@@ -141,6 +159,10 @@ __all__ = [
     "evaluate_settings",
     "evaluate_tracking",
     "grasp_contact_model",
+    "grasp_controls",
+    "grasp_fit_evidence",
+    "grasp_fit_logs",
+    "grasp_fit_scene",
     "grasp_mode_table",
     "grasp_run_logs",
     "grasp_schedule",
@@ -148,6 +170,7 @@ __all__ = [
     "grasp_tactile_readings",
     "grasp_trials",
     "grasp_trials_from_logs",
+    "launched_grasps",
     "load_checkpoint",
     "logged_settings",
     "min_vertex_height",
