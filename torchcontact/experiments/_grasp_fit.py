@@ -4,7 +4,7 @@ Every trial is one set-up with its own true parameters (the friction of the tria
 table ``μ``, the friction of the fingers on the triangle ``μ_f`` and the camera noise ``σ``),
 recorded over a few grasps: the triangle is launched along the table towards the middle of
 the open gripper at 0.4–0.5 m/s, slides to a stop in view of the camera, and the fingers close
-on it, hold it and open again (the grasp of :mod:`~torchcontact.experiments._triangle_grasp`,
+on it, hold it and open again (the grasp of :func:`~torchcontact.experiments.grasp_trials`,
 with its occlusion, tactile array and RBPF). The filter's evidence ``log p(y, readings | μ,
 σ)``, summed over the trial's grasps, is maximized by the same three methods as the sliding box
 (:data:`~torchcontact.experiments.FITTERS`).
