@@ -27,6 +27,15 @@ def load_script(name: str) -> ModuleType:
     return module
 
 
+def _as_written(value: Any) -> Any:
+    """A value read back from JSON as ``dataclasses.asdict`` held it: lists were tuples."""
+    if isinstance(value, list):
+        return tuple(_as_written(item) for item in value)
+    if isinstance(value, dict):
+        return {key: _as_written(item) for key, item in value.items()}
+    return value
+
+
 def assert_logged(run_dir: Path, fields: Iterable[str], expected: Mapping[str, Any]) -> None:
     """The run folder logs its arguments and throughput (read back with TensorBoard's reader).
 
@@ -44,8 +53,7 @@ def assert_logged(run_dir: Path, fields: Iterable[str], expected: Mapping[str, A
     table = text.tensor_proto.string_val[0].decode()
     assert table.startswith("| argument | value |\n|---|---|\n")
     for name, value in saved.items():
-        shown = tuple(value) if isinstance(value, list) else value
-        assert f"| {name} | {shown} |" in table, name
+        assert f"| {name} | {_as_written(value)} |" in table, name
     rates = [event.value for event in events.Scalars("charts/SPS")]
     assert rates
     assert all(0 < rate < math.inf for rate in rates)

@@ -23,7 +23,10 @@ and :func:`replay` runs an estimator over logs, scored as in the experiment.
 Fitting (:mod:`torchcontact.filters`): :func:`sliding_logs` simulates boxes sliding to a stop
 under a noisy camera (:class:`SlidingFit` holds the settings), :func:`sliding_evidence` is the
 contact RBPF's evidence of friction and camera noise over them, and :data:`FITTERS` maximize
-it by gradient, over a grid and by CMA-ES.
+it by gradient, over a grid and by CMA-ES. :func:`grasp_fit_logs` simulates trials of the
+triangle grasp with a launched triangle (:class:`GraspFit` holds the settings) and
+:func:`grasp_fit_evidence` is the grasp RBPF's evidence of the ground friction and camera
+noise over them.
 
 Many seeds (``train/sweep.py``): :func:`seed_statistics` is the mean, range and Student-t
 interval of one metric over seeds (:class:`SeedStatistics`); :func:`aggregate_seeds` gives it
@@ -48,11 +51,21 @@ from torchcontact.experiments._friction_fit import (
     FIT_METHODS,
     FITTERS,
     FitOutcome,
+    FitSearch,
     SlidingFit,
     SlidingLogs,
     box_scene,
     sliding_evidence,
     sliding_logs,
+)
+from torchcontact.experiments._grasp_fit import (
+    GraspFit,
+    GraspFitLogs,
+    camera_std,
+    grasp_fit_evidence,
+    grasp_fit_logs,
+    grasp_fit_scene,
+    launched_grasps,
 )
 from torchcontact.experiments._grasp_logs import (
     FINGER_JOINTS,
@@ -103,6 +116,7 @@ from torchcontact.experiments._triangle_grasp import (
     calibrate_pf,
     evaluate_tracking,
     grasp_contact_model,
+    grasp_controls,
     grasp_mode_table,
     grasp_schedule,
     grasp_summary,
@@ -141,6 +155,9 @@ __all__ = [
     "EstimatorRuns",
     "Evaluation",
     "FitOutcome",
+    "FitSearch",
+    "GraspFit",
+    "GraspFitLogs",
     "GraspTrials",
     "PegLearning",
     "PotentialShaping",
@@ -159,6 +176,7 @@ __all__ = [
     "belief_features",
     "box_scene",
     "calibrate_pf",
+    "camera_std",
     "check_choice",
     "check_int",
     "check_name",
@@ -167,6 +185,10 @@ __all__ = [
     "evaluate_settings",
     "evaluate_tracking",
     "grasp_contact_model",
+    "grasp_controls",
+    "grasp_fit_evidence",
+    "grasp_fit_logs",
+    "grasp_fit_scene",
     "grasp_mode_table",
     "grasp_run_logs",
     "grasp_schedule",
@@ -174,6 +196,7 @@ __all__ = [
     "grasp_tactile_readings",
     "grasp_trials",
     "grasp_trials_from_logs",
+    "launched_grasps",
     "load_checkpoint",
     "logged_settings",
     "min_vertex_height",

@@ -17,6 +17,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -27,6 +28,36 @@ from torchcontact.sim import Body, Scene, Simulator
 
 #: The methods compared, in table order.
 FIT_METHODS = ("gradient", "grid", "cma")
+
+
+class FitSearch(Protocol):
+    """The search box and budgets of the fitting methods (:class:`SlidingFit` and
+    :class:`~torchcontact.experiments.GraspFit` have them)."""
+
+    @property
+    def seed(self) -> int:
+        """Seed of CMA-ES (plus one)."""
+        ...
+
+    @property
+    def mu_range(self) -> tuple[float, float]:
+        """Search range of the friction coefficient."""
+        ...
+
+    @property
+    def sigma_mm_range(self) -> tuple[float, float]:
+        """Search range of the camera noise, mm."""
+        ...
+
+    @property
+    def grid_points(self) -> int:
+        """Grid points per parameter."""
+        ...
+
+    @property
+    def cma_evaluations(self) -> int:
+        """Evidence evaluations allowed to CMA-ES."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -88,6 +119,7 @@ class FitOutcome:
         log_evidence: evidence at the estimate.
         evaluations: evidence evaluations (with gradients, for ``gradient``).
         seconds: wall time.
+        cpu_seconds: this process's CPU time (the steadier measure on a shared machine).
         mu_error: standard error of ``mu`` (``gradient`` only, else nan).
     """
 
@@ -96,6 +128,7 @@ class FitOutcome:
     log_evidence: float
     evaluations: int
     seconds: float
+    cpu_seconds: float
     mu_error: float = math.nan
 
 
@@ -175,10 +208,10 @@ def sliding_evidence(logs: SlidingLogs, particles: int) -> Callable[[dict[str, T
 
 
 def fit_by_gradient(
-    evidence: Callable[[dict[str, Tensor]], Tensor], settings: SlidingFit
+    evidence: Callable[[dict[str, Tensor]], Tensor], settings: FitSearch
 ) -> FitOutcome:
     """:func:`~torchcontact.filters.fit_parameters` from the middle of the search box."""
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     fit = fit_parameters(
         evidence,
         {"mu": sum(settings.mu_range) / 2, "sigma_mm": sum(settings.sigma_mm_range) / 2},
@@ -190,15 +223,14 @@ def fit_by_gradient(
         log_evidence=float(fit.log_evidence),
         evaluations=fit.evaluations,
         seconds=time.perf_counter() - start,
+        cpu_seconds=time.process_time() - cpu,
         mu_error=float(fit.standard_errors["mu"]),
     )
 
 
-def fit_by_grid(
-    evidence: Callable[[dict[str, Tensor]], Tensor], settings: SlidingFit
-) -> FitOutcome:
+def fit_by_grid(evidence: Callable[[dict[str, Tensor]], Tensor], settings: FitSearch) -> FitOutcome:
     """The best point of a ``grid_points × grid_points`` grid over the search box."""
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     mus = torch.linspace(*settings.mu_range, settings.grid_points, dtype=torch.float64)
     sigmas = torch.linspace(*settings.sigma_mm_range, settings.grid_points, dtype=torch.float64)
     best = (-math.inf, 0.0, 0.0)
@@ -213,16 +245,17 @@ def fit_by_grid(
         log_evidence=best[0],
         evaluations=settings.grid_points**2,
         seconds=time.perf_counter() - start,
+        cpu_seconds=time.process_time() - cpu,
     )
 
 
-def fit_by_cma(evidence: Callable[[dict[str, Tensor]], Tensor], settings: SlidingFit) -> FitOutcome:
+def fit_by_cma(evidence: Callable[[dict[str, Tensor]], Tensor], settings: FitSearch) -> FitOutcome:
     """CMA-ES (``cma``, the reference implementation of N. Hansen) in the search box scaled to
     the unit square, from its centre with step 0.3, for ``cma_evaluations`` evaluations."""
     import cma  # the dev extra's; imported here so that the library does not need it
 
     (mu_low, mu_high), (s_low, s_high) = settings.mu_range, settings.sigma_mm_range
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     evaluations = 0
 
     def negative(point: list[float]) -> float:
@@ -252,11 +285,12 @@ def fit_by_cma(evidence: Callable[[dict[str, Tensor]], Tensor], settings: Slidin
         log_evidence=-float(strategy.result.fbest),
         evaluations=evaluations,
         seconds=time.perf_counter() - start,
+        cpu_seconds=time.process_time() - cpu,
     )
 
 
 #: The fitting functions by method name.
-FITTERS: dict[str, Callable[[Callable[[dict[str, Tensor]], Tensor], SlidingFit], FitOutcome]] = {
+FITTERS: dict[str, Callable[[Callable[[dict[str, Tensor]], Tensor], FitSearch], FitOutcome]] = {
     "gradient": fit_by_gradient,
     "grid": fit_by_grid,
     "cma": fit_by_cma,

@@ -194,6 +194,23 @@ def grasp_schedule(steps: int) -> tuple[slice, slice, Tensor]:
     return close, opening, occluded
 
 
+def grasp_controls(steps: int, batch: int) -> tuple[Tensor, Tensor]:
+    """The fingers' open poses ``(B, 2, 3)`` and their twists ``(T, B, 2, 3)`` (world frame)
+    over :func:`grasp_schedule`: they close at constant speed to a width 1.5 mm above the
+    triangle's width at their lower corners, hold, and open at 0.1 m/s."""
+    bottom = FINGER_Y - FINGER[1] / 2
+    target = SIDE / 2 * (1 - bottom / HEIGHT) + 0.0015 + FINGER[0] / 2
+    q_kin = torch.tensor([[-FINGER_OPEN, FINGER_Y, 0.0], [FINGER_OPEN, FINGER_Y, 0.0]], dtype=F64)
+    q_kin = q_kin.expand(batch, 2, 3).clone()
+    close, opening, _ = grasp_schedule(steps)
+    n_close = close.stop - close.start
+    speed = (FINGER_OPEN - target) / (n_close * H)
+    controls = torch.zeros(steps, batch, 2, 3, dtype=F64)
+    controls[close, :, 0, 0], controls[close, :, 1, 0] = speed, -speed
+    controls[opening, :, 0, 0], controls[opening, :, 1, 0] = -0.1, 0.1
+    return q_kin, controls
+
+
 def simulate_grasps(
     settings: TriangleGrasp, batch: int, seed: int
 ) -> tuple[Scene, Rollout, Tensor, Tensor]:
@@ -220,17 +237,7 @@ def simulate_grasps(
     cos, sin = torch.cos(theta), torch.sin(theta)
     lowest = (sin[:, None] * vertices[:, 0] + cos[:, None] * vertices[:, 1]).min(-1).values
     q = torch.stack([x0, 1e-4 - lowest, theta], -1)[:, None]
-    # Close to a width 1.5 mm above the triangle's width at the fingers' lower corners.
-    bottom = FINGER_Y - FINGER[1] / 2
-    target = SIDE / 2 * (1 - bottom / HEIGHT) + 0.0015 + FINGER[0] / 2
-    q_kin = torch.tensor([[-FINGER_OPEN, FINGER_Y, 0.0], [FINGER_OPEN, FINGER_Y, 0.0]], dtype=F64)
-    q_kin = q_kin.expand(batch, 2, 3).clone()
-    close, opening, _ = grasp_schedule(T)
-    n_close = close.stop - close.start
-    speed = (FINGER_OPEN - target) / (n_close * H)
-    controls = torch.zeros(T, batch, 2, 3, dtype=F64)
-    controls[close, :, 0, 0], controls[close, :, 1, 0] = speed, -speed
-    controls[opening, :, 0, 0], controls[opening, :, 1, 0] = -0.1, 0.1
+    q_kin, controls = grasp_controls(T, batch)
     scene = triangle_scene(mu)
     simulator = Simulator(scene)
     state = simulator.initial_state(q=q, q_kinematic=q_kin)
@@ -369,7 +376,8 @@ def run_rbpf(
     Returns:
         ``pose (T, B, 3)`` mixture-mean poses, ``marginals (T, B, K)`` filtered mode
         marginals, ``cloud (T, N, 3)`` and ``cloud_weight (T, N)`` particle means and weights
-        of trial ``trial``.
+        of trial ``trial``, and ``log_evidence (B,)`` the filter's ``log p(y, readings)``
+        (differentiable in the model's parameters).
     """
     rbpf = RBPF(model, settings.rbpf_particles, proposal="all_modes")
     belief = rbpf.init(trials.prior)
@@ -396,6 +404,7 @@ def run_rbpf(
         "marginals": torch.stack(marginals),
         "cloud": torch.stack(clouds),
         "cloud_weight": torch.stack(cloud_weights),
+        "log_evidence": belief.log_evidence,
     }
 
 

@@ -163,9 +163,15 @@ def optimal_resample_core(
     tail_mass = tail.gather(-1, kept.clamp(max=tail.shape[-1] - 1))  # S = weight not kept
     tail_mass = torch.where(found, tail_mass, 1.0)  # unused there; keeps gradients finite
     # Systematic draw of L children with probabilities c·w (< 1: at most one copy each) over
-    # a random permutation of the remaining children, so that no layout period biases it.
+    # a random permutation of the remaining children, so that no layout period biases it. The
+    # permutation orders the children by random keys tied to their own index (not to their
+    # rank by weight), and the survivors leave in the order of their index: children of equal
+    # weight (modes with the same prediction) whose rank swaps under a perturbation of the
+    # weights by rounding are then drawn with the same random numbers, so that the filter's
+    # result is a piecewise smooth function of the model's parameters for a fixed generator.
     position = torch.arange(lw.shape[-1], device=lw.device)
-    remaining = torch.where(position >= kept, sorted_w, 0.0).detach()
+    left = torch.where(position >= kept, sorted_w, 0.0).detach()
+    remaining = torch.zeros_like(left).scatter(-1, order, left)  # by child index
     batch = lw.shape[:-1]
     perm = torch.argsort(torch.rand(lw.shape, generator=generator, device=lw.device), dim=-1)
     remaining = remaining.gather(-1, perm)
@@ -173,7 +179,7 @@ def optimal_resample_core(
     slot = torch.arange(n_out, device=lw.device)
     offset = torch.rand((*batch, 1), dtype=torch.float64, generator=generator, device=lw.device)
     u = ((slot - kept) + offset) / drawn.clamp(min=1)
-    picked = order.gather(-1, perm.gather(-1, inverse_cdf(remaining, u)))
+    picked = perm.gather(-1, inverse_cdf(remaining, u))
     is_drawn = slot >= kept
     indices = torch.where(is_drawn, picked, order[..., :n_out])
     new_lw = torch.where(
@@ -181,6 +187,8 @@ def optimal_resample_core(
         torch.log(tail_mass) - torch.log(drawn.clamp(min=1).to(lw.dtype)),
         sorted_lw[..., :n_out],
     )
+    indices, by_index = torch.sort(indices, dim=-1)
+    new_lw = new_lw.gather(-1, by_index)
     return indices, new_lw - torch.logsumexp(new_lw, -1, keepdim=True)
 
 
