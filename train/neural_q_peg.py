@@ -2,7 +2,7 @@
 
     python train/dyna_q_peg.py            # first: the tabular Q, graph and belief model
     python train/neural_q_peg.py --tabular-run runs/dyna_q_peg__0__<unix time> --rounds 8
-    python train/neural_q_peg.py --tabular-run runs/dyna_q_peg__0__<unix time> --occlusion-radius 0.05
+    python train/neural_q_peg.py --tabular-run <that run> --occlusion-radius 0.05
 
 Starts from a finished ``dyna_q_peg`` run (``--tabular-run``, its run folder): its Q table,
 manipulation graph and fitted belief model. ``--occlusion-radius`` (and ``--vision-sigma``) run

@@ -61,7 +61,8 @@ def test_the_camera_returns_nothing_exactly_inside_the_zone() -> None:
             observation, _, terminated, _, info = env.step(action)
             if terminated:
                 break
-    assert inside >= 5 and outside >= 5  # both sides of the boundary were visited
+    assert inside >= 5
+    assert outside >= 5
 
 
 def test_the_occlusion_changes_nothing_but_the_camera() -> None:
@@ -120,7 +121,8 @@ def test_touch_tells_the_side_of_the_hole_while_the_camera_is_blind(offset: floa
 
 def test_the_variant_is_registered() -> None:
     env = gym.make(PEG_IN_HOLE_OCCLUDED_ID, observation="noisy")
-    assert env.spec is not None and env.spec.max_episode_steps == OCCLUDED_CONFIG.max_steps
+    assert env.spec is not None
+    assert env.spec.max_episode_steps == OCCLUDED_CONFIG.max_steps
     assert env.unwrapped.config.occlusion_radius == pytest.approx(0.05)
     observation, _ = env.reset(seed=0, options={**_ABOVE, "gripper_x": 0.0})
     assert np.isnan(observation["peg_pose"]).all()
