@@ -19,7 +19,9 @@ Each round plays ``--num-envs`` episodes with the filter in the loop, ε-greedy 
 reward with the tabular agent's shaping and discount, next features); then fitted Q
 iteration: ``--fitted-iterations`` times, freeze a copy as the target and take
 ``--updates-per-iteration`` Adam steps of the double-DQN Huber loss on replayed batches, plus a
-trust region around QMDP, ``--residual-penalty`` times the mean squared residual. The buffer
+trust region around QMDP's policy: ``--residual-penalty`` times the mean square of the
+residual's action-dependent part ``g(z, a) − mean_b g(z, b)`` (the part common to all
+actions, QMDP's optimism about the belief's value, changes no decision and is free). The buffer
 stores the QMDP values of each belief (``A``) with its compact features (``F``), not the
 probabilities over all states: with a frozen head they are all the network needs. The greedy
 network is evaluated every few rounds on validation episodes; the best (the untrained network,
@@ -109,8 +111,9 @@ class Args:
     """width of the residual's 2 hidden layers"""
     learning_rate: float = 1e-3
     """Adam step size"""
-    residual_penalty: float = 1.0
-    """trust region around QMDP: this times the mean squared residual joins the loss"""
+    residual_penalty: float = 10.0
+    """trust region around QMDP's policy: this times the mean square of the residual's
+    action-dependent part (its deviation from its mean over actions) joins the loss"""
     buffer_size: int = 100_000
     """replay capacity (transitions)"""
     batch_size: int = 256
@@ -286,7 +289,7 @@ def run(args: Args) -> dict[str, Any]:
         writer.add_scalar("charts/epsilon", row["epsilon"], step)
         if "loss" in row:
             writer.add_scalar("losses/td_loss", row["loss"], step)
-            writer.add_scalar("losses/residual_rms", row["residual_rms"], step)
+            writer.add_scalar("losses/advantage_rms", row["advantage_rms"], step)
         if (r + 1) % args.eval_every == 0 or r + 1 == args.rounds:
             candidate = _validate(args, eval_env, lookup, filt, online, round_index=r)
             row["eval_success"] = candidate["success"]
@@ -472,7 +475,9 @@ def _fit(
         for _ in range(args.updates_per_iteration):
             batch = buffer.sample(args.batch_size)
             residual = online.residual_values(batch.observations)
-            penalty = residual.square().mean()
+            # Only the part that differs between actions changes decisions: the common part
+            # (QMDP's optimism about the value of the belief) is free.
+            penalty = (residual - residual.mean(-1, keepdim=True)).square().mean()
             loss = dqn_loss(online, target, batch, gamma, double=True)
             optimizer.zero_grad()
             (loss + args.residual_penalty * penalty).backward()
@@ -482,7 +487,7 @@ def _fit(
             residuals.append(float(penalty.detach()))
     if not losses:  # no NaN placeholders: the history must compare equal after a resume
         return {}
-    return {"loss": float(np.mean(losses)), "residual_rms": float(np.sqrt(np.mean(residuals)))}
+    return {"loss": float(np.mean(losses)), "advantage_rms": float(np.sqrt(np.mean(residuals)))}
 
 
 def main(argv: list[str] | None = None) -> None:
