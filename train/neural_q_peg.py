@@ -1,28 +1,39 @@
-"""A neural Q function on the RBPF belief for the peg-in-hole task, trained DQN-style.
+"""A neural Q function on the RBPF belief for the peg-in-hole task, by fitted Q iteration.
 
     python train/dyna_q_peg.py            # first: the tabular Q, graph and belief model
-    python train/neural_q_peg.py --tabular-run runs/dyna_q_peg__0__<unix time> --rounds 20
+    python train/neural_q_peg.py --tabular-run runs/dyna_q_peg__0__<unix time> --rounds 8
+    python train/neural_q_peg.py --tabular-run <that run> --occlusion-radius 0.05
 
 Starts from a finished ``dyna_q_peg`` run (``--tabular-run``, its run folder): its Q table,
-manipulation graph and fitted belief model. The network (:class:`~torchcontact.rl.QNetwork`) reads
-:func:`~torchcontact.experiments.belief_features` of the filter's belief; its QMDP head is the
-Q table and its residual MLP starts at zero, so before any update it acts exactly as QMDP over
-the RBPF belief. It is then trained with double DQN (replay buffer, target network, Huber
-loss, linearly decaying ε) on rounds of noisy-observation episodes with the filter in the
-loop, on the same shaped reward and discount factor as the tabular agent. Only the residual
-learns unless ``--train-table``: the head stays the tabular Q, so the network learns what the
-belief's spread and pose add to QMDP. The greedy network
-is evaluated every few rounds on validation episodes; the best one (the untrained network
-included) is kept. Finally oracle, raw, QMDP and neural Q are compared on the same fresh
-episodes. Writes TensorBoard logs, checkpoints, ``network.pt`` and ``results.md`` to a new
-run folder, ``runs/neural_q_peg__<seed>__<unix time>``; a killed run continues where its last
-checkpoint left it, to the same result, with ``--resume <that folder>`` (the same arguments;
-``--rounds`` may grow).
+manipulation graph and fitted belief model. ``--occlusion-radius`` (and ``--vision-sigma``) run
+the same task with another camera (:attr:`~torchcontact.envs.PegInHoleConfig.occlusion_radius`:
+the camera loses the peg near the hole, and only touch tells where it is); the task's physics,
+so the tabular Q and the belief model's dynamics, are the same.
+
+The network (:class:`~torchcontact.rl.QNetwork`) is QMDP plus a residual on the compact belief
+features (the tail of :func:`~torchcontact.experiments.belief_features`: pose mean and spread,
+class entropy, ESS, class marginals): ``Q(b, a) = Σ_i p_i Q_tab(m_i, a) + g(z, a)``. The QMDP
+head is frozen; ``g`` starts at zero, so before any update the network acts exactly as QMDP.
+Each round plays ``--num-envs`` episodes with the filter in the loop, ε-greedy on the network
+(ε decays linearly over the transitions), storing belief transitions (features, action, shaped
+reward with the tabular agent's shaping and discount, next features); then fitted Q
+iteration: ``--fitted-iterations`` times, freeze a copy as the target and take
+``--updates-per-iteration`` Adam steps of the double-DQN Huber loss on replayed batches, plus a
+trust region around QMDP's policy: ``--residual-penalty`` times the mean square of the
+residual's action-dependent part ``g(z, a) − mean_b g(z, b)`` (the part common to all
+actions, QMDP's optimism about the belief's value, changes no decision and is free). The buffer
+stores the QMDP values of each belief (``A``) with its compact features (``F``), not the
+probabilities over all states: with a frozen head they are all the network needs. The greedy
+network is evaluated every few rounds on validation episodes; the best (the untrained network,
+i.e. QMDP, included) is kept. Finally the settings are compared on the same fresh episodes
+(oracle, raw on the standard camera, QMDP, neural). Writes TensorBoard logs, checkpoints,
+``network.pt`` and ``results.md`` to a new run folder, ``runs/neural_q_peg__<seed>__<unix
+time>``; a killed run continues where its last checkpoint left it, to the same result, with
+``--resume <that folder>`` (the same arguments; ``--rounds`` may grow).
 """
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 from pathlib import Path
 from typing import Any
@@ -32,13 +43,19 @@ import torch
 import tyro
 from tqdm import tqdm
 
-from torchcontact.envs import PegInHole2DVector, PegInHoleBeliefModel, PegInHoleFilter
+from torchcontact.envs import (
+    PegInHole2DVector,
+    PegInHoleBeliefModel,
+    PegInHoleFilter,
+    PegInHoleTask,
+)
 from torchcontact.experiments import (
     CHECKPOINT,
     NUM_BELIEF_FEATURES,
     PotentialShaping,
     QLookup,
     RunLog,
+    Setting,
     belief_features,
     check_int,
     check_name,
@@ -62,7 +79,7 @@ from torchcontact.rl import (
 
 DTYPE = torch.float32
 #: The checkpoint's entries besides ``"args"``.
-_SAVED = ("round", "online", "target", "optimizer", "buffer", "counters", "history", "best")
+_SAVED = ("round", "online", "optimizer", "buffer", "counters", "history", "best")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,53 +96,59 @@ class Args:
     resume: str | None = None
     """a run folder to continue from its checkpoint (the same arguments; rounds may grow)"""
     seed: int = 0
-    """seed of the episodes and buffer"""
-    num_envs: int = 16
+    """seed of the episodes, network and buffer"""
+    occlusion_radius: float = 0.0
+    """the camera loses the peg within this distance of the hole's mouth, m (0: never)"""
+    vision_sigma: float = 0.0
+    """camera position noise std, m (angle: 10x, rad); 0: the tabular run's camera"""
+    num_envs: int = 32
     """episodes per round"""
-    rounds: int = 20
+    rounds: int = 8
     """training rounds"""
     particles: int = 64
     """RBPF particles"""
     hidden: int = 64
-    """width of the 2 hidden layers"""
-    learning_rate: float = 1e-4
+    """width of the residual's 2 hidden layers"""
+    learning_rate: float = 1e-3
     """Adam step size"""
-    train_table: bool = False
-    """also train the QMDP head (default: frozen; only the residual learns)"""
-    buffer_size: int = 10_000
-    """replay capacity"""
-    batch_size: int = 128
+    residual_penalty: float = 10.0
+    """trust region around QMDP's policy: this times the mean square of the residual's
+    action-dependent part (its deviation from its mean over actions) joins the loss"""
+    buffer_size: int = 100_000
+    """replay capacity (transitions)"""
+    batch_size: int = 256
     """replay batch size"""
     learning_starts: int = 1_000
-    """transitions stored before the first update"""
-    updates_per_step: int = 1
-    """gradient steps per batched environment step"""
-    target_every: int = 250
-    """gradient steps between target-network copies"""
-    epsilon_start: float = 0.1
-    """initial ε"""
-    epsilon_end: float = 0.02
+    """transitions stored before the first fitted iteration"""
+    fitted_iterations: int = 10
+    """fitted Q iterations (target-network copies) after each round"""
+    updates_per_iteration: int = 200
+    """Adam steps per fitted iteration"""
+    epsilon_start: float = 0.2
+    """initial ε of the training episodes"""
+    epsilon_end: float = 0.05
     """final ε"""
     epsilon_steps: int = 20_000
     """transitions over which ε decays"""
-    eval_every: int = 4
-    """rounds between evals"""
-    eval_episodes: int = 48
-    """validation episodes per evaluation"""
-    final_episodes: int = 100
+    eval_every: int = 1
+    """rounds between validations"""
+    eval_episodes: int = 64
+    """validation episodes (the same every time)"""
+    final_episodes: int = 200
     """episodes per setting in the final comparison"""
 
 
 @dataclasses.dataclass
 class _Tabular:
-    """What the neural run takes from the tabular one."""
+    """What the neural run takes from the tabular one (the model on this run's camera)."""
 
     agent: DynaQ
     model: PegInHoleBeliefModel
     shaping: PotentialShaping
 
 
-def _load_tabular(folder: Path) -> _Tabular:
+def _load_tabular(args: Args) -> _Tabular:
+    folder = Path(args.tabular_run)
     checkpoint, model_path = folder / CHECKPOINT, folder / "belief_model.pt"
     for path in (checkpoint, model_path):
         if not path.is_file():
@@ -135,7 +158,14 @@ def _load_tabular(folder: Path) -> _Tabular:
     saved = read_checkpoint(checkpoint, keys=("args", "agent", "round"))
     if saved["round"] < saved["args"]["rounds"]:
         raise ValueError(f"tabular_run {str(folder)!r} has not finished its rounds")
-    model = torch.load(model_path, weights_only=False)
+    model: PegInHoleBeliefModel = torch.load(model_path, weights_only=False)
+    config = model.task.config
+    sigma = args.vision_sigma
+    camera = (sigma, sigma, 10 * sigma) if sigma > 0 else config.pose_noise_std
+    config = dataclasses.replace(
+        config, occlusion_radius=args.occlusion_radius, pose_noise_std=camera
+    )
+    model = dataclasses.replace(model, task=PegInHoleTask(config))
     return _Tabular(
         DynaQ.from_state_dict(saved["agent"]), model, PotentialShaping(saved["args"]["shaping"])
     )
@@ -149,19 +179,50 @@ def check_args(args: Args) -> _Tabular:
             ``tabular_run`` is not a finished ``dyna_q_peg`` run.
     """
     check_name("name", args.name)
-    for name in ("num_envs", "rounds", "hidden", "buffer_size", "batch_size", "target_every"):
+    for name in ("num_envs", "rounds", "hidden", "buffer_size", "batch_size"):
         check_int(name, getattr(args, name), low=1)
     for name in ("eval_every", "eval_episodes", "final_episodes"):
         check_int(name, getattr(args, name), low=1)
-    for name in ("seed", "learning_starts", "updates_per_step", "epsilon_steps"):
+    for name in ("seed", "learning_starts", "fitted_iterations", "updates_per_iteration"):
         check_int(name, getattr(args, name), low=0)
+    check_int("epsilon_steps", args.epsilon_steps, low=0)
     check_real("learning_rate", args.learning_rate, low=0.0, low_open=True)
+    check_real("residual_penalty", args.residual_penalty, low=0.0)
+    check_real("occlusion_radius", args.occlusion_radius, low=0.0)
+    check_real("vision_sigma", args.vision_sigma, low=0.0)
     check_real("epsilon_start", args.epsilon_start, low=0.0, high=1.0)
     check_real("epsilon_end", args.epsilon_end, low=0.0, high=1.0)
-    tabular = _load_tabular(Path(args.tabular_run))
+    tabular = _load_tabular(args)
     K = tabular.model.num_modes
     check_int("particles", args.particles, low=K, why="the belief model's number of modes K")
     return tabular
+
+
+def compact_network(args: Args, num_actions: int) -> QNetwork:
+    """The network the buffer trains: input the QMDP values ``(A)`` then the compact features
+    ``(F)``; its head is the identity, so its values are those of :func:`deployed_network`
+    with the same residual on the full features."""
+    network = QNetwork.from_table(
+        torch.eye(num_actions, dtype=DTYPE),
+        NUM_BELIEF_FEATURES,
+        hidden=(args.hidden, args.hidden),
+        residual_on_probabilities=False,
+    )
+    network.table.requires_grad_(False)
+    return network
+
+
+def deployed_network(table: torch.Tensor, compact: QNetwork) -> QNetwork:
+    """The network on :func:`~torchcontact.experiments.belief_features`: QMDP head ``table
+    (M, A)`` and the residual of ``compact``."""
+    network = QNetwork.from_table(
+        table.to(DTYPE),
+        compact.num_features,
+        hidden=[m.out_features for m in compact.residual if isinstance(m, torch.nn.Linear)][:-1],
+        residual_on_probabilities=False,
+    )
+    network.residual.load_state_dict(compact.residual.state_dict())
+    return network
 
 
 def run(args: Args) -> dict[str, Any]:
@@ -177,17 +238,13 @@ def run(args: Args) -> dict[str, Any]:
     tabular = check_args(args)
     torch.set_num_threads(1)
     run_dir, saved = open_run(args, keys=_SAVED)
-    checkpoint_path = run_dir / CHECKPOINT
     agent, model = tabular.agent, tabular.model
     config = model.task.config
     lookup = QLookup(agent, model.task.states)
     filt = PegInHoleFilter(model, num_particles=args.particles)
     torch.manual_seed(args.seed)  # the residual's hidden layers start random
-    online = QNetwork.from_table(
-        lookup.table.to(DTYPE), NUM_BELIEF_FEATURES, hidden=(args.hidden, args.hidden)
-    )
-    online.table.requires_grad_(args.train_table)
-    target = copy.deepcopy(online)
+    online = compact_network(args, model.num_actions)
+    target = compact_network(args, model.num_actions)
     trained = [p for p in online.parameters() if p.requires_grad]
     optimizer = torch.optim.Adam(trained, lr=args.learning_rate)
     buffer = ReplayBuffer(args.buffer_size, online.input_size, dtype=DTYPE, seed=args.seed)
@@ -198,7 +255,6 @@ def run(args: Args) -> dict[str, Any]:
     best: dict[str, Any] = {}
     if saved is not None:
         online.load_state_dict(saved["online"])
-        target.load_state_dict(saved["target"])
         optimizer.load_state_dict(saved["optimizer"])
         buffer.load_state_dict(saved["buffer"])
         start, counters = saved["round"], saved["counters"]
@@ -208,21 +264,23 @@ def run(args: Args) -> dict[str, Any]:
     log = RunLog(run_dir, args)
     writer = log.writer
     first_step = counters["transitions"]
-    for r in tqdm(range(start, args.rounds), desc="dqn rounds", initial=start, total=args.rounds):
-        row = _train_round(
+    for r in tqdm(range(start, args.rounds), desc="fqi rounds", initial=start, total=args.rounds):
+        row = _collect(
             args,
             env,
             filt,
             lookup,
             tabular,
             online=online,
-            target=target,
-            optimizer=optimizer,
             buffer=buffer,
             schedule=schedule,
             counters=counters,
             round_index=r,
         )
+        if len(buffer) >= args.learning_starts:
+            row |= _fit(
+                args, online, target, optimizer, buffer, counters, gamma=tabular.agent.gamma
+            )
         step = counters["transitions"]
         log.steps_per_second(step - first_step, step)
         writer.add_scalar("charts/episodic_return", row["episodic_return"], step)
@@ -231,7 +289,7 @@ def run(args: Args) -> dict[str, Any]:
         writer.add_scalar("charts/epsilon", row["epsilon"], step)
         if "loss" in row:
             writer.add_scalar("losses/td_loss", row["loss"], step)
-            writer.add_scalar("losses/q_values", row["q_mean"], step)
+            writer.add_scalar("losses/advantage_rms", row["advantage_rms"], step)
         if (r + 1) % args.eval_every == 0 or r + 1 == args.rounds:
             candidate = _validate(args, eval_env, lookup, filt, online, round_index=r)
             row["eval_success"] = candidate["success"]
@@ -240,12 +298,11 @@ def run(args: Args) -> dict[str, Any]:
                 best = candidate
         history.append(row)
         save_checkpoint(
-            checkpoint_path,
+            run_dir / CHECKPOINT,
             {
                 "args": dataclasses.asdict(args),
                 "round": r + 1,
                 "online": online.state_dict(),
-                "target": target.state_dict(),
                 "optimizer": optimizer.state_dict(),
                 "buffer": buffer.state_dict(),
                 "counters": counters,
@@ -254,27 +311,34 @@ def run(args: Args) -> dict[str, Any]:
             },
         )
     online.load_state_dict(best["state"])
+    network = deployed_network(lookup.table, online)
+    settings: tuple[Setting, ...] = ("oracle", "qmdp", "neural")
+    if config.occlusion_radius == 0:  # the raw setting reads the camera's pose
+        settings = ("oracle", "raw", "qmdp", "neural")
     evaluations = evaluate_settings(
-        ("oracle", "raw", "qmdp", "neural"),
+        settings,
         num_episodes=args.final_episodes,
         config=config,
         lookup=lookup,
         seed=args.seed + 104_729,
         filt=filt,
-        network=online,
+        network=network,
     )
     for e in evaluations:
         writer.add_scalar(
             f"eval/final_{e.setting}_success", e.success_rate, counters["transitions"]
         )
     log.close()
-    torch.save(online.state_dict(), run_dir / "network.pt")
+    torch.save(network.state_dict(), run_dir / "network.pt")
+    for e in evaluations:
+        np.save(run_dir / f"successes_{e.setting}.npy", e.successes)
     sigma = config.pose_noise_std
     text = (
         f"# Neural Q on the RBPF belief, peg-in-hole ({counters['transitions']} training "
         f"transitions; kept: {_kept(best['round'])})\n\n"
-        f"Camera noise σ = {1e3 * sigma[0]:.1f} mm, {sigma[2]:.3f} rad; {args.particles} "
-        f"particles; tabular Q from {args.tabular_run} ({agent.num_states} states).\n\n"
+        f"Camera noise σ = {1e3 * sigma[0]:.1f} mm, {sigma[2]:.3f} rad, occlusion radius "
+        f"{1e3 * config.occlusion_radius:.0f} mm; {args.particles} particles; tabular Q from "
+        f"{args.tabular_run} ({agent.num_states} states).\n\n"
         f"{results_table(evaluations)}\n"
     )
     (run_dir / "results.md").write_text(text)
@@ -298,19 +362,28 @@ def _validate(
     env: PegInHole2DVector,
     lookup: QLookup,
     filt: PegInHoleFilter,
-    network: QNetwork,
+    compact: QNetwork,
     *,
     round_index: int,
 ) -> dict[str, Any]:
-    """Greedy success of ``network`` on the validation episodes (the same every time)."""
+    """Greedy success of the network on the validation episodes (the same every time)."""
+    network = deployed_network(lookup.table, compact)
     result = evaluate(
         env, "neural", lookup=lookup, seed=args.seed + 7_919, filt=filt, network=network
     )
-    state = {k: v.detach().clone() for k, v in network.state_dict().items()}
+    state = {k: v.detach().clone() for k, v in compact.state_dict().items()}
     return {"success": result.success_rate, "round": round_index, "state": state}
 
 
-def _train_round(
+def _inputs(filt: PegInHoleFilter, belief: Any, lookup: QLookup) -> torch.Tensor:
+    """``(B, A + F)`` the compact network's input: QMDP values, then the compact features."""
+    features = belief_features(filt, belief, lookup)
+    M = lookup.table.shape[0]
+    qmdp = features[:, :M] @ lookup.table
+    return torch.cat([qmdp, features[:, M:]], -1).to(DTYPE)
+
+
+def _collect(
     args: Args,
     env: PegInHole2DVector,
     filt: PegInHoleFilter,
@@ -318,14 +391,12 @@ def _train_round(
     tabular: _Tabular,
     *,
     online: QNetwork,
-    target: QNetwork,
-    optimizer: torch.optim.Optimizer,
     buffer: ReplayBuffer,
     schedule: EpsilonSchedule,
     counters: dict[str, int],
     round_index: int,
 ) -> dict[str, float]:
-    """One episode per environment with the filter in the loop; DQN updates as it goes.
+    """One ε-greedy episode per environment with the filter in the loop, into the buffer.
 
     Everything random in a round (episodes, filter, exploration) is seeded by the round's
     index, and the buffer's sampler is checkpointed, so a resumed run equals a straight one.
@@ -335,18 +406,17 @@ def _train_round(
     generator = torch.Generator().manual_seed(seed)
     observation, info = env.reset(seed=seed)
     belief = filt.init(observation)
-    features = belief_features(filt, belief, lookup).to(DTYPE)
+    inputs = _inputs(filt, belief, lookup)
     potential = shaping.potential(env.states, info["peg_pose"], depth)
     B = env.num_envs
     live = np.ones(B, dtype=bool)
     returns, lengths = np.zeros(B), np.zeros(B, dtype=np.int64)
     successes = np.zeros(B, dtype=bool)
-    losses: list[float] = []
-    q_means: list[float] = []
+    epsilon = schedule(counters["transitions"])
     while live.any():
         epsilon = schedule(counters["transitions"])
         with torch.no_grad():
-            values = online(features)
+            values = online(inputs)
         noise = 1e-6 * torch.rand(values.shape, generator=generator, dtype=values.dtype)
         greedy = (values + noise).argmax(-1)
         random = torch.randint(filt.model.num_actions, (B,), generator=generator)
@@ -354,7 +424,7 @@ def _train_round(
         actions = torch.where(explore, random, greedy).numpy()
         observation, reward, terminated, truncated, info = env.step(actions)
         belief = filt.step(belief, actions, observation, generator=generator)
-        next_features = belief_features(filt, belief, lookup).to(DTYPE)
+        next_inputs = _inputs(filt, belief, lookup)
         next_potential = shaping.potential(env.states, info["peg_pose"], depth)
         shaped = shaping.shaped(
             reward,
@@ -365,31 +435,19 @@ def _train_round(
         )
         index = torch.as_tensor(np.flatnonzero(live))
         buffer.add(
-            observation=features[index],
+            observation=inputs[index],
             action=torch.as_tensor(actions)[index],
             reward=torch.as_tensor(shaped)[index],
-            next_observation=next_features[index],
+            next_observation=next_inputs[index],
             terminal=torch.as_tensor(terminated)[index],
         )
         counters["transitions"] += int(live.sum())
-        if len(buffer) >= args.learning_starts:
-            for _ in range(args.updates_per_step):
-                batch = buffer.sample(args.batch_size)
-                loss = dqn_loss(online, target, batch, gamma, double=True)
-                optimizer.zero_grad()
-                loss.backward()
-                optimizer.step()
-                counters["updates"] += 1
-                if counters["updates"] % args.target_every == 0:
-                    update_target(target=target, online=online)
-                losses.append(float(loss.detach()))
-            q_means.append(float(values.mean()))
         returns[live] += reward[live]
         lengths[live] += 1
         successes |= live & info["success"]
         live = live & ~(terminated | truncated)
-        features, potential = next_features, next_potential
-    row = {
+        inputs, potential = next_inputs, next_potential
+    return {
         "round": round_index,
         "transitions": counters["transitions"],
         "success_rate": float(successes.mean()),
@@ -397,9 +455,39 @@ def _train_round(
         "episode_length": float(lengths.mean()),
         "epsilon": epsilon,
     }
-    if losses:  # no NaN placeholders: the history must compare equal after a resume
-        row |= {"loss": float(np.mean(losses)), "q_mean": float(np.mean(q_means))}
-    return row
+
+
+def _fit(
+    args: Args,
+    online: QNetwork,
+    target: QNetwork,
+    optimizer: torch.optim.Optimizer,
+    buffer: ReplayBuffer,
+    counters: dict[str, int],
+    *,
+    gamma: float,
+) -> dict[str, float]:
+    """Fitted Q iteration on the buffer: per iteration a frozen target and Adam steps on the
+    double-DQN loss plus the trust-region penalty."""
+    losses, residuals = [], []
+    for _ in range(args.fitted_iterations):
+        update_target(target=target, online=online)
+        for _ in range(args.updates_per_iteration):
+            batch = buffer.sample(args.batch_size)
+            residual = online.residual_values(batch.observations)
+            # Only the part that differs between actions changes decisions: the common part
+            # (QMDP's optimism about the value of the belief) is free.
+            penalty = (residual - residual.mean(-1, keepdim=True)).square().mean()
+            loss = dqn_loss(online, target, batch, gamma, double=True)
+            optimizer.zero_grad()
+            (loss + args.residual_penalty * penalty).backward()
+            optimizer.step()
+            counters["updates"] += 1
+            losses.append(float(loss.detach()))
+            residuals.append(float(penalty.detach()))
+    if not losses:  # no NaN placeholders: the history must compare equal after a resume
+        return {}
+    return {"loss": float(np.mean(losses)), "advantage_rms": float(np.sqrt(np.mean(residuals)))}
 
 
 def main(argv: list[str] | None = None) -> None:

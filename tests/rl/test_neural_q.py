@@ -53,6 +53,34 @@ def test_linear_network_without_other_features() -> None:
     assert torch.equal(network(p), torch.zeros(1, 2))
 
 
+def test_a_residual_on_the_other_features_alone() -> None:
+    """``residual_on_probabilities=False``: the values are the QMDP values plus an MLP of the
+    other features only, computed here layer by layer from the weights."""
+    generator = torch.Generator().manual_seed(1)
+    K, F, A = 6, 4, 3
+    table = torch.randn(K, A, generator=generator, dtype=torch.float64)
+    network = QNetwork.from_table(table, F, hidden=(5,), residual_on_probabilities=False)
+    first, last = network.residual[0], network.residual[2]
+    assert first.in_features == F
+    with torch.no_grad():  # move the output layer off zero
+        last.weight.copy_(torch.randn(A, 5, generator=generator, dtype=torch.float64))
+        last.bias.copy_(torch.randn(A, generator=generator, dtype=torch.float64))
+    p = torch.softmax(torch.randn(2, K, generator=generator, dtype=torch.float64), -1)
+    other = torch.randn(2, F, generator=generator, dtype=torch.float64)
+    hidden = torch.clamp(other @ first.weight.T + first.bias, min=0.0)
+    expected = qmdp_values(table, p) + hidden @ last.weight.T + last.bias
+    values = network(torch.cat([p, other], -1))
+    torch.testing.assert_close(values, expected, rtol=1e-12, atol=1e-12)
+    shuffled = torch.cat([p.flip(-1), other], -1)
+    torch.testing.assert_close(
+        network.residual_values(shuffled), expected - qmdp_values(table, p), rtol=0, atol=1e-12
+    )
+    with pytest.raises(ValueError, match="num_features must be >= 1"):
+        QNetwork(K, 0, A, residual_on_probabilities=False)
+    with pytest.raises(ValueError, match="residual_on_probabilities must be a bool"):
+        QNetwork(K, F, A, residual_on_probabilities=1)  # type: ignore[arg-type]
+
+
 def _chain_q_star(K: int, gamma: float) -> np.ndarray:
     """Value iteration on the chain: states 0 … K−1, K−1 terminal, actions left / right,
     reward 1 on entering K−1."""

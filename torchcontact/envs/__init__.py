@@ -14,7 +14,9 @@ Importing this package registers ``"torchcontact/PegInHole2D-v0"`` with gymnasiu
 environment in ``TimeLimit``; ``max_episode_steps=`` sets another limit), for
 ``gymnasium.make_vec`` in the ``"sync"``, ``"async"`` and ``"vector_entry_point"`` modes
 (the last one steps :class:`PegInHole2DVector`). :func:`observation_bounds` gives the
-observation spaces' bounds.
+observation spaces' bounds. ``"torchcontact/PegInHole2DOccluded-v0"`` is the same task with
+:data:`OCCLUDED_CONFIG`: the camera loses the peg near the hole (``occlusion_radius``), so
+only touch tells where the peg is there.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from torchcontact.envs._belief_filter import PegBelief, PegInHoleFilter
 from torchcontact.envs._belief_model import PegControl, PegInHoleBeliefModel
 from torchcontact.envs._config import PegInHoleConfig
 from torchcontact.envs._env import PegInHole2D
-from torchcontact.envs._observe import START_KEYS, observation_bounds
+from torchcontact.envs._observe import START_KEYS, observation_bounds, occluded
 from torchcontact.envs._states import (
     CONTACT_TABLE,
     ENV_BELOW,
@@ -52,6 +54,10 @@ from torchcontact.envs._vector import PegInHole2DVector
 
 #: Gymnasium id of :class:`PegInHole2D`.
 PEG_IN_HOLE_ID = "torchcontact/PegInHole2D-v0"
+#: Gymnasium id of the occluded variant (:data:`OCCLUDED_CONFIG`).
+PEG_IN_HOLE_OCCLUDED_ID = "torchcontact/PegInHole2DOccluded-v0"
+#: The occluded variant: the default task, its camera blind within 5 cm of the hole's mouth.
+OCCLUDED_CONFIG = PegInHoleConfig(occlusion_radius=0.05)
 
 if PEG_IN_HOLE_ID not in gymnasium.registry:
     gymnasium.register(
@@ -59,6 +65,16 @@ if PEG_IN_HOLE_ID not in gymnasium.registry:
         entry_point="torchcontact.envs:PegInHole2D",
         vector_entry_point="torchcontact.envs:PegInHole2DVector",
         max_episode_steps=PegInHoleConfig().max_steps,
+    )
+if PEG_IN_HOLE_OCCLUDED_ID not in gymnasium.registry:
+    gymnasium.register(
+        id=PEG_IN_HOLE_OCCLUDED_ID,
+        entry_point="torchcontact.envs:PegInHole2D",
+        vector_entry_point="torchcontact.envs:PegInHole2DVector",
+        max_episode_steps=OCCLUDED_CONFIG.max_steps,
+        kwargs={"config": OCCLUDED_CONFIG},
+        # A blind camera's NaN pose lies outside every Box: the passive checker would warn.
+        disable_env_checker=True,
     )
 
 __all__ = [
@@ -73,7 +89,9 @@ __all__ = [
     "GRASP_STICK",
     "HELD_FREE",
     "NUM_CONTACT_CLASSES",
+    "OCCLUDED_CONFIG",
     "PEG_IN_HOLE_ID",
+    "PEG_IN_HOLE_OCCLUDED_ID",
     "START_KEYS",
     "PegBelief",
     "PegControl",
@@ -90,4 +108,5 @@ __all__ = [
     "contact_classes",
     "manipulation_state",
     "observation_bounds",
+    "occluded",
 ]

@@ -46,7 +46,8 @@ class PegInHoleFilter:
     """The RBPF of :class:`PegInHoleBeliefModel` over a batch of episodes, on observations.
 
     Observations are those of ``PegInHole2D(observation="noisy")`` (or the vector version):
-    mappings with ``peg_pose (B, 3)``, ``gripper_pose (B, 3)`` and ``tactile (B, S)``.
+    mappings with ``peg_pose (B, 3)``, ``gripper_pose (B, 3)`` and ``tactile (B, S)``; a row
+    of ``peg_pose`` that is all NaN (the camera lost the peg) is no measurement.
 
     Args:
         model: the fitted model.
@@ -182,8 +183,13 @@ class PegInHoleFilter:
             )
         if readings.ndim != 2 or readings.shape[0] != y.shape[0]:
             raise ValueError(f"observation: tactile must be (B, S), got {tuple(readings.shape)}")
-        if not bool(torch.isfinite(y).all() and torch.isfinite(gripper).all()):
-            raise ValueError("observation: peg_pose and gripper_pose must be finite")
+        # A peg the camera lost (PegInHoleConfig.occlusion_radius) is an all-NaN row: no
+        # measurement for the RBPF.
+        seen = torch.isfinite(y).all(-1) | torch.isnan(y).all(-1)
+        if not bool(seen.all() and torch.isfinite(gripper).all()):
+            raise ValueError(
+                "observation: gripper_pose must be finite, peg_pose finite or all-NaN per row"
+            )
         return y, gripper, readings
 
 

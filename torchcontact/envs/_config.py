@@ -42,6 +42,7 @@ _NON_NEGATIVE = (
     "chamfer",
     "grip_force",
     "margin",
+    "occlusion_radius",
     "success_reward",
     "step_cost",
     "drop_penalty",
@@ -115,6 +116,13 @@ class PegInHoleConfig:
         step_cost: cost of every step (subtracted).
         drop_penalty: cost of losing the peg from the grasp (subtracted; ends the episode).
         pose_noise_std: ``(σx, σy, σθ)`` of the noisy vision pose of the peg.
+        occlusion_radius: the camera loses the peg while the peg's bottom centre lies within
+            this distance of the centre of the hole's mouth ``(0, hole_depth)`` (the gripper
+            and the blocks hide it): the noisy observation's ``peg_pose`` is then NaN in all
+            three components, and the lateral offset of the peg in the grasp is observable only
+            by touch (the tactile readings are unaffected). ``0`` (the default): always seen.
+            :data:`~torchcontact.envs.OCCLUDED_CONFIG` is the variant registered as
+            ``"torchcontact/PegInHole2DOccluded-v0"``.
         tactile_counts: sensors on the peg's bottom, right, top and left sides.
         tactile_radius: sensing radius of each tactile sensor.
         tactile_half_angle: half-angle of each sensor's cone of triggering normals.
@@ -168,6 +176,7 @@ class PegInHoleConfig:
     step_cost: float = 0.01
     drop_penalty: float = 1.0
     pose_noise_std: tuple[float, float, float] = (0.002, 0.002, 0.02)
+    occlusion_radius: float = 0.0
     tactile_counts: tuple[int, int, int, int] = (2, 5, 2, 5)
     tactile_radius: float = 0.015
     tactile_half_angle: float = math.pi / 4

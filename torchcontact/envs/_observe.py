@@ -161,7 +161,9 @@ def observe(
 
     Poses and twists are clipped to :func:`observation_bounds`. Each environment draws, in
     order, 3 normals (pose noise) and ``S`` uniforms (tactile noise) in ``"noisy"`` mode,
-    nothing in ``"state"`` mode.
+    nothing in ``"state"`` mode. In ``"noisy"`` mode the camera's ``peg_pose`` is NaN (all
+    three components) where the peg is :func:`occluded` (the noise is drawn anyway, so the
+    random streams do not depend on the occlusion).
 
     Args:
         task: the task.
@@ -180,6 +182,7 @@ def observe(
     uniforms = np.stack([rng.random(S) for rng in rngs])
     peg = physics.state.q[:, PEG].numpy()
     noisy = peg + normals * np.asarray(c.pose_noise_std)
+    noisy[occluded(task, physics)] = np.nan
     probability = task.sensors.reading_probability(torch.from_numpy(triggered)).numpy()
     readings = (uniforms < probability).astype(np.int8)
     return {
@@ -187,6 +190,17 @@ def observe(
         "gripper_pose": np.clip(physics.gripper.numpy(), *bounds["gripper_pose"]),
         "tactile": readings,
     }
+
+
+def occluded(task: PegInHoleTask, physics: Physics) -> NDArray[np.bool_]:
+    """``(B,)`` whether the camera loses the peg: its bottom centre lies within
+    ``occlusion_radius`` of the centre of the hole's mouth (never when the radius is 0)."""
+    peg = physics.state.q[:, PEG]
+    finite = torch.isfinite(peg).all(-1)  # a failed step's pose: left to the camera as it is
+    relative = task.states.relative_pose(torch.where(finite[:, None], peg, 0.0))
+    distance = torch.hypot(relative[:, 0], relative[:, 1])
+    hidden: NDArray[np.bool_] = (finite & (distance < task.config.occlusion_radius)).numpy()
+    return hidden
 
 
 def summaries(

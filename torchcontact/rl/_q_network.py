@@ -21,9 +21,12 @@ class QNetwork(nn.Module):
     * a linear **QMDP head** ``p @ T`` with a ``(K, A)`` parameter table ``T``
       (:attr:`table`): with ``T`` a tabular Q function this is exactly
       :func:`qmdp_values`;
-    * an **MLP residual** ``g`` on all ``K + F`` features (:attr:`residual`), whose last layer
-      starts at zero, so a fresh network equals its QMDP head and learning only adds what the
-      belief's other features explain.
+    * an **MLP residual** ``g`` (:attr:`residual`) on all ``K + F`` features, or on the ``F``
+      other features alone (``residual_on_probabilities=False``: with many states, the
+      compact summary of the belief generalizes from fewer samples), whose last layer starts
+      at zero, so a fresh network equals its QMDP head and learning only adds what the
+      belief's other features explain. :meth:`residual_values` returns ``g(x)`` alone, e.g.
+      for a trust-region penalty that keeps the network near QMDP.
 
     Args:
         num_states: ``K >= 1``, the length of the probability part of the input.
@@ -31,6 +34,8 @@ class QNetwork(nn.Module):
         num_actions: ``A >= 1``.
         hidden: widths of the residual's hidden layers (``()`` makes it linear).
         activation: factory of the hidden activation module.
+        residual_on_probabilities: whether the residual reads the probabilities too (else
+            only the ``F >= 1`` other features).
         dtype: parameter dtype (default: torch's default dtype).
         device: parameter device.
 
@@ -46,6 +51,7 @@ class QNetwork(nn.Module):
         hidden: Sequence[int] = (64, 64),
         *,
         activation: Callable[[], nn.Module] = nn.ReLU,
+        residual_on_probabilities: bool = True,
         dtype: torch.dtype | None = None,
         device: torch.device | str | None = None,
     ) -> None:
@@ -53,6 +59,13 @@ class QNetwork(nn.Module):
         self.num_states = check_int("num_states", num_states, low=1)
         self.num_features = check_int("num_features", num_features, low=0)
         self.num_actions = check_int("num_actions", num_actions, low=1)
+        if not isinstance(residual_on_probabilities, bool):
+            raise ValueError(
+                f"residual_on_probabilities must be a bool, got {residual_on_probabilities!r}"
+            )
+        if not residual_on_probabilities and self.num_features == 0:
+            raise ValueError("num_features must be >= 1 when the residual skips the probabilities")
+        self.residual_on_probabilities = residual_on_probabilities
         if isinstance(hidden, (str, bytes)) or not isinstance(hidden, Sequence):
             raise ValueError(f"hidden must be a sequence of ints, got {hidden!r}")
         widths = [check_int("hidden", width, low=1) for width in hidden]
@@ -61,7 +74,7 @@ class QNetwork(nn.Module):
         factory: dict[str, Any] = {"dtype": dtype, "device": device}
         self.table = nn.Parameter(torch.zeros(self.num_states, self.num_actions, **factory))
         layers: list[nn.Module] = []
-        size = self.num_states + self.num_features
+        size = self.num_features + (self.num_states if residual_on_probabilities else 0)
         for width in widths:
             layers += [nn.Linear(size, width, **factory), activation()]
             size = width
@@ -78,6 +91,7 @@ class QNetwork(nn.Module):
         hidden: Sequence[int] = (64, 64),
         *,
         activation: Callable[[], nn.Module] = nn.ReLU,
+        residual_on_probabilities: bool = True,
     ) -> QNetwork:
         """A network whose QMDP head is ``q_table``: at creation it returns exactly
         :func:`qmdp_values` ``(q_table, p)``.
@@ -88,6 +102,7 @@ class QNetwork(nn.Module):
             num_features: ``F >= 0``, the number of features after the probabilities.
             hidden: widths of the residual's hidden layers.
             activation: factory of the hidden activation module.
+            residual_on_probabilities: whether the residual reads the probabilities too.
 
         Raises:
             ValueError: ``q_table`` is not a finite ``(K, A)`` floating tensor.
@@ -105,6 +120,7 @@ class QNetwork(nn.Module):
             A,
             hidden,
             activation=activation,
+            residual_on_probabilities=residual_on_probabilities,
             dtype=q_table.dtype,
             device=q_table.device,
         )
@@ -131,8 +147,25 @@ class QNetwork(nn.Module):
             ValueError: ``features`` has the wrong size, dtype or device, or holds NaN or inf.
         """
         features = self._check("features", features, self.input_size)
-        residual: Tensor = self.residual(features)
+        residual = self.residual_values(features, check=False)
         return self.qmdp(features[..., : self.num_states], check=False) + residual
+
+    def residual_values(self, features: Tensor, *, check: bool = True) -> Tensor:
+        """The residual ``g(x)`` alone (the network's values less its QMDP head).
+
+        Args:
+            features: ``(*B, K + F)`` belief features, probabilities first.
+            check: validate the input (shape, dtype, device, finiteness).
+
+        Returns:
+            ``(*B, A)`` values.
+        """
+        if check:
+            features = self._check("features", features, self.input_size)
+        if not self.residual_on_probabilities:
+            features = features[..., self.num_states :]
+        values: Tensor = self.residual(features)
+        return values
 
     def qmdp(self, probabilities: Tensor, *, check: bool = True) -> Tensor:
         """The QMDP head alone, ``p @ T``.
@@ -167,5 +200,6 @@ class QNetwork(nn.Module):
     def extra_repr(self) -> str:
         return (
             f"num_states={self.num_states}, num_features={self.num_features}, "
-            f"num_actions={self.num_actions}"
+            f"num_actions={self.num_actions}, "
+            f"residual_on_probabilities={self.residual_on_probabilities}"
         )
