@@ -82,7 +82,7 @@ def slot_map(scene: Scene, filtered: Scene) -> Tensor:
         }
 
     source = names(scene)
-    index = []
+    index: list[int] = []
     for pair, (_, count) in names(filtered).items():
         if pair not in source or source[pair][1] != count:
             raise ValueError(f"filtered: slot group {pair} is not one of the scene's")
