@@ -4,6 +4,8 @@ and the Kalman filter of a free-falling peg."""
 
 from __future__ import annotations
 
+import math
+
 import pytest
 import torch
 from torch import Tensor
@@ -20,11 +22,12 @@ from torchcontact.envs import (
     slot_map,
 )
 from torchcontact.envs._belief_model import compose
-from torchcontact.envs._physics_model import grasp_prior
+from torchcontact.envs._physics_model import _rule_out_unstable, grasp_prior
 from torchcontact.filters import (
     RBPF,
     Gaussian,
     KinematicControl,
+    ModeDynamics,
     PlanarContactModel,
     kf_predict,
     kf_update,
@@ -300,3 +303,22 @@ def test_fit_builds_modes_of_classes_and_rejects_bad_input() -> None:
                 actions=torch.zeros(1, dtype=torch.long),
             ),
         )
+
+
+def test_modes_with_unstable_linearizations_are_ruled_out() -> None:
+    """A mode whose Jacobian is not finite or explodes gets log-weight -inf and identity
+    dynamics; the others pass unchanged."""
+    F = torch.eye(6, dtype=F64).repeat(2, 3, 1, 1)
+    c = torch.ones(2, 3, 6, dtype=F64)
+    F[0, 1, 0, 0] = math.nan
+    F[1, 2, 3, 4] = 1e6
+    eye3 = torch.eye(3, dtype=F64)
+    dynamics = ModeDynamics(F=F, c=c, Q=eye3, H=eye3, d=c[..., :3], R=eye3)
+    out = _rule_out_unstable(dynamics)
+    assert out.mode_log_weight is not None
+    ruled_out = torch.tensor([[False, True, False], [False, False, True]])
+    assert bool((torch.isinf(out.mode_log_weight) == ruled_out).all())
+    assert bool((out.mode_log_weight[~ruled_out] == 0).all())  # exact zeros: nothing added
+    expected_F = torch.where(ruled_out[..., None, None], torch.eye(6, dtype=F64), F)
+    torch.testing.assert_close(out.F, expected_F, rtol=0, atol=1e-15)
+    torch.testing.assert_close(out.c, torch.where(ruled_out[..., None], 0.0, c), rtol=0, atol=1e-15)

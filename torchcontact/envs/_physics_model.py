@@ -226,7 +226,7 @@ class PegPhysicsModel:
         fingers = self.finger_control(
             control.gripper_before, control.gripper_after, belief.mean()[..., :3]
         )
-        dynamics = self.contact.mode_dynamics(belief, fingers)
+        dynamics = _rule_out_unstable(self.contact.mode_dynamics(belief, fingers))
         rows = class_rows(
             self.graph.state_transition, self.graph.state_row, control.state_ids, control.actions
         )
@@ -438,6 +438,30 @@ class PegPhysicsModel:
             grasp_prior=grasp_prior(task),
             twist_prior=torch.diag(torch.tensor(_START_TWIST, dtype=_F64) ** 2),
         )
+
+
+#: Largest entry of a mode's step Jacobian that the filter accepts (a contradictory mode's
+#: regularized solve can amplify round-off without bound).
+_MAX_JACOBIAN = 1e4
+
+
+def _rule_out_unstable(dynamics: ModeDynamics) -> ModeDynamics:
+    """``dynamics`` with every mode whose linearization is not finite or has an entry above
+    :data:`_MAX_JACOBIAN` ruled out (log-weight ``-inf``, identity dynamics in its place)."""
+    F, c = dynamics.F, dynamics.c
+    finite = torch.isfinite(F).all(-1).all(-1) & torch.isfinite(c).all(-1)
+    bad = ~finite | (torch.nan_to_num(F).abs().amax((-2, -1)) > _MAX_JACOBIAN)
+    if not bool(bad.any()):
+        return dynamics
+    eye = torch.eye(F.shape[-1], dtype=F.dtype).expand_as(F)
+    weight = dynamics.mode_log_weight
+    weight = torch.zeros_like(c[..., 0]) if weight is None else weight.expand_as(c[..., 0])
+    return replace(
+        dynamics,
+        F=torch.where(bad[..., None, None], eye, F),
+        c=torch.where(bad[..., None], 0.0, c),
+        mode_log_weight=torch.where(bad, -math.inf, weight),
+    )
 
 
 def _finger_slots(scene: Scene) -> Tensor:
