@@ -118,7 +118,7 @@ def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
     _assert_identical(straight, resumed)
     with pytest.raises(
         ValueError,
-        match=r"vision_sigma may differ\): seed: checkpoint 0, now 3; "
+        match=r"mode_episodes may differ\): seed: checkpoint 0, now 3; "
         r"alpha: checkpoint 0\.1, now 0\.5$",
     ):
         module.run(_tiny(module, tmp_path, alpha=0.5, seed=3, resume=stopped["run_dir"]))
