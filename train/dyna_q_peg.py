@@ -5,21 +5,26 @@
 Learns a tabular Q function over manipulation states (pose cell × contact class) and the
 manipulation graph with Dyna-Q on rounds of batched episodes (one episode per environment per
 round, true state, shaped reward, count-directed ε exploration), with value iteration on the
-graph after each round when planning, evaluating the greedy policy every few rounds. Then fits
-the RBPF's belief model (contact-class-conditioned grasp motion, tactile model, the graph as
-transition) on the recorded steps and executes the policy on noisy observations: oracle (true
-state), greedy on the raw observation, and QMDP over the RBPF belief. Writes TensorBoard logs,
-checkpoints, ``q_table.pt``, ``graph.json``, ``belief_model.pt``, ``learning.png``,
-``graph.png`` (the graph merged to contact states) and ``results.md`` to a new run folder,
-``runs/dyna_q_peg__<seed>__<unix time>``. A killed run continues where its last checkpoint
-left it, to the same result, with ``--resume runs/dyna_q_peg__<seed>__<unix time>`` (the
-same arguments; ``--rounds`` may grow; ``--final-episodes``, ``--particles`` and
-``--vision-sigma`` may differ, to evaluate a finished run again without training).
+graph after each round when planning, evaluating the greedy policy every few rounds. Then builds
+the RBPF's belief models, the fitted one (contact-class-conditioned grasp motion and tactile
+model fitted on the recorded steps) and the physics one (the peg's mode-decoupled contact
+dynamics, its mode table from greedy episodes on the true state), both with the graph as
+transition, and executes the policy on noisy observations: oracle (true state), greedy on the
+raw observation, and QMDP over the RBPF belief of each model. Writes TensorBoard logs,
+checkpoints, ``q_table.pt``, ``graph.json``, ``belief_model.pt``, ``physics_model.pt``,
+``learning.png``, ``graph.png`` (the graph merged to contact states), ``results.md`` and
+``metrics.json`` (every scalar result, as :func:`~torchcontact.experiments.aggregate_seeds`
+reads them) to a new run folder, ``runs/dyna_q_peg__<seed>__<unix time>``. A killed run
+continues where its last checkpoint left it, to the same result, with ``--resume
+runs/dyna_q_peg__<seed>__<unix time>`` (the same arguments; ``--rounds`` may grow;
+``--final-episodes``, ``--particles``, ``--vision-sigma``, ``--belief`` and
+``--mode-episodes`` may differ, to evaluate a finished run again without training).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from pathlib import Path
 from typing import Any, get_args
@@ -40,6 +45,7 @@ from torchcontact.envs import (
     PegInHoleConfig,
     PegInHoleFilter,
     PegInHoleTask,
+    PegPhysicsModel,
     PegTransitions,
 )
 from torchcontact.experiments import (
@@ -57,6 +63,7 @@ from torchcontact.experiments import (
     round_seed,
     run_round,
     save_checkpoint,
+    scalar_metrics,
 )
 from torchcontact.rl import Exploration, StepSize
 from torchcontact.states import ManipulationGraph, ManipulationState
@@ -64,7 +71,9 @@ from torchcontact.states import ManipulationGraph, ManipulationState
 _LEARNING = PegLearning()
 #: Arguments used only after training: a finished run resumes with other values of these and
 #: only fits the belief model and evaluates again.
-_EVALUATION = ("final_episodes", "particles", "vision_sigma")
+_EVALUATION = ("final_episodes", "particles", "vision_sigma", "belief", "mode_episodes")
+#: The belief models of ``--belief``, by name.
+_BELIEFS = ("both", "fitted", "physics")
 #: The checkpoint's entries besides ``"args"``.
 _SAVED = ("agent", "round", "transitions", "history")
 _MODES = "the belief model's number of modes K"
@@ -117,6 +126,11 @@ class Args:
     """RBPF particles"""
     vision_sigma: float = 0.002
     """camera position noise std, m (angle: 10x, rad)"""
+    belief: str = "both"
+    """the RBPF's belief model in QMDP: fitted, physics or both (raw always decodes the
+    sensors with the fitted tactile model)"""
+    mode_episodes: int = 64
+    """greedy episodes on the true state whose contact modes make the physics model's table"""
     x_edges: str = ""
     """grid cell edges along x, m, comma-separated (empty: the default)"""
     y_edges: str = ""
@@ -151,6 +165,8 @@ def check_args(args: Args) -> PegLearning:
     check_int("seed", args.seed, low=0)
     check_int("planning_steps", args.planning_steps, low=0)
     check_int("final_episodes", args.final_episodes, low=0)
+    check_int("mode_episodes", args.mode_episodes, low=1)
+    check_choice("belief", args.belief, _BELIEFS)
     check_int("particles", args.particles, low=NUM_CONTACT_CLASSES, why=_MODES)
     check_choice("step_size", args.step_size, get_args(StepSize))
     check_choice("exploration", args.exploration, get_args(Exploration))
@@ -257,25 +273,46 @@ def run(args: Args) -> dict[str, Any]:
     data = PegTransitions.concat(parts)
     noisy = _config(args, noisy=True)
     task = PegInHoleTask(noisy)
+    lookup = QLookup(agent, task.states)
     model = PegInHoleBeliefModel.fit(data, agent.graph, task=task)
+    filters = {"fitted": PegInHoleFilter(model, num_particles=args.particles)}
+    physics = None
+    if args.belief != "fitted":
+        greedy = run_round(
+            PegInHole2DVector(num_envs=args.mode_episodes, config=_config(args, noisy=False)),
+            agent,
+            seed=args.seed * 1_000_003 + 900_000,
+            shaping=shaping,
+            learn=False,
+        )
+        physics = PegPhysicsModel.fit(
+            greedy.slot_modes, greedy.transitions.next_classes, agent.graph, task=task
+        )
+        filters["physics"] = PegInHoleFilter(physics, num_particles=args.particles)
+    if args.belief == "physics":
+        del filters["fitted"]
     evaluations = (
         evaluate_settings(
             ("oracle", "raw", "qmdp"),
             num_episodes=args.final_episodes,
             config=noisy,
-            lookup=QLookup(agent, task.states),
+            lookup=lookup,
             seed=args.seed + 7919,
             filt=PegInHoleFilter(model, num_particles=args.particles),
+            filters=filters,
         )
         if args.final_episodes > 0
         else []
     )
     for e in evaluations:
-        writer.add_scalar(f"eval/{e.setting}_success", e.success_rate, episodes)
+        tag = e.setting.replace(" + ", "_")
+        writer.add_scalar(f"eval/{tag}_success", e.success_rate, episodes)
     log.close()
     torch.save(agent.q_table(), run_dir / "q_table.pt")
     agent.graph.save(run_dir / "graph.json")
     torch.save(model, run_dir / "belief_model.pt")
+    if physics is not None:
+        torch.save(physics, run_dir / "physics_model.pt")
     _plot_learning(history, run_dir / "learning.png")
     _plot_graph(agent.graph, run_dir / "graph.png")
     evaluated = [h for h in history if "greedy_success" in h]
@@ -292,16 +329,23 @@ def run(args: Args) -> dict[str, Any]:
         f"# Dyna-Q peg-in-hole ({episodes} training episodes, n = {args.planning_steps}, "
         f"seed {args.seed})\n\n{curve}\n"
         f"Camera noise σ = {1e3 * args.vision_sigma:.1f} mm, {10 * args.vision_sigma:.3f} rad; "
-        f"{args.particles} particles; {agent.num_states} manipulation states visited.\n\n"
+        f"{args.particles} particles; {agent.num_states} manipulation states visited"
+        + (f"; physics model: {physics.num_modes} contact modes" if physics else "")
+        + ".\n\n"
         f"{results_table(evaluations) if evaluations else 'No final evaluation.'}\n"
     )
     (run_dir / "results.md").write_text(text)
-    return {
+    result = {
         "run_dir": str(run_dir),
         "history": history,
         "evaluations": {e.setting: e.success_rate for e in evaluations},
+        "execution": {e.setting: e.metrics() for e in evaluations},
+        "learning": {f"greedy_success@{h['episodes']:.0f}": h["greedy_success"] for h in evaluated},
         "num_states": agent.num_states,
     }
+    metrics = scalar_metrics(result)
+    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
+    return result
 
 
 def _plot_learning(history: list[dict[str, float]], path: Path) -> None:

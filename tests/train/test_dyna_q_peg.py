@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
 import re
 import time
 from pathlib import Path
@@ -15,7 +17,13 @@ import torch
 
 from tests.train import assert_logged, load_script
 from torchcontact.envs import PegInHole2DVector
-from torchcontact.experiments import PegLearning, PotentialShaping, round_seed
+from torchcontact.experiments import (
+    PegLearning,
+    PotentialShaping,
+    aggregate_seeds,
+    round_seed,
+    statistics_table,
+)
 
 
 def _tiny(module: ModuleType, out: Path, **changes: object) -> object:
@@ -45,12 +53,25 @@ def test_runs_and_writes_its_artefacts(module: ModuleType, tmp_path: Path) -> No
     artefacts = ("results.md", "q_table.pt", "graph.json", "graph.png", "learning.png")
     for name in (*artefacts, "checkpoint.pt"):
         assert (run_dir / name).is_file(), name
-    assert set(result["evaluations"]) == {"oracle", "raw", "qmdp"}
+    rows = {"oracle", "raw", "qmdp + fitted", "qmdp + physics"}
+    assert set(result["evaluations"]) == rows
+    assert set(result["execution"]) == rows
+    for name, metrics in result["execution"].items():
+        assert set(metrics) == {"success", "steps", "log_p_true_class", "ms_per_decision"}
+        # Only the filters have a belief over the contact class; a probability is <= 1.
+        assert math.isnan(metrics["log_p_true_class"]) == (name in ("oracle", "raw"))
+        assert math.isnan(metrics["log_p_true_class"]) or metrics["log_p_true_class"] <= 0.0
+    saved = json.loads((run_dir / "metrics.json").read_text())
+    success = result["evaluations"]["qmdp + physics"]
+    assert saved["execution/qmdp + physics/success"] == pytest.approx(success, abs=1e-12)
+    assert set(result["learning"]) == {"greedy_success@3", "greedy_success@6"}
+    assert (run_dir / "physics_model.pt").is_file()
     assert len(result["history"]) == 2
     assert "greedy_success" in result["history"][-1]
     assert list(run_dir.glob("events.out.tfevents.*"))
     text = (run_dir / "results.md").read_text()
-    assert "| qmdp | 3 |" in text
+    assert "| qmdp + fitted | 3 |" in text
+    assert "| qmdp + physics | 3 |" in text
     greedy = [f"{100 * h['greedy_success']:.1f} %" for h in result["history"]]
     assert "| greedy success (true state) | " + " | ".join(greedy) + " |" in text
 
@@ -76,7 +97,7 @@ def test_a_finished_run_is_evaluated_again_without_training(
         )
     )
     assert again["run_dir"] == str(run_dir)
-    assert set(again["evaluations"]) == {"oracle", "raw", "qmdp"}
+    assert set(again["evaluations"]) == {"oracle", "raw", "qmdp + fitted", "qmdp + physics"}
     assert again["history"] == trained["history"]
     assert torch.equal(torch.load(run_dir / "q_table.pt"), q_table)
     refused = "other arguments .*: epsilon: checkpoint 0.1, now 0.2$"  # a training argument
@@ -97,7 +118,7 @@ def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
     _assert_identical(straight, resumed)
     with pytest.raises(
         ValueError,
-        match=r"vision_sigma may differ\): seed: checkpoint 0, now 3; "
+        match=r"mode_episodes may differ\): seed: checkpoint 0, now 3; "
         r"alpha: checkpoint 0\.1, now 0\.5$",
     ):
         module.run(_tiny(module, tmp_path, alpha=0.5, seed=3, resume=stopped["run_dir"]))
@@ -281,3 +302,16 @@ def test_rounds_play_distinct_episodes() -> None:
     _, first = env.reset(seed=7)
     _, shifted = env.reset(seed=8)
     np.testing.assert_array_equal(first["peg_pose"][1:], shifted["peg_pose"][:-1])
+
+
+def test_seed_table_aggregates_the_runs_metrics(module: ModuleType, tmp_path: Path) -> None:
+    """The tables over training seeds: ``aggregate_seeds`` of each run's ``metrics.json``."""
+    runs = [module.run(_tiny(module, tmp_path, seed=seed, rounds=1)) for seed in (0, 1)]
+    metrics = [json.loads(Path(r["run_dir"], "metrics.json").read_text()) for r in runs]
+    rows = aggregate_seeds({"sigma": metrics}, metrics=["execution/qmdp + physics/success"])
+    (row,) = rows
+    values = [r["evaluations"]["qmdp + physics"] for r in runs]
+    assert row.statistics.n == 2
+    assert row.statistics.mean == pytest.approx(sum(values) / 2, abs=1e-12)
+    assert row.statistics.min == pytest.approx(min(values), abs=1e-12)
+    assert "execution/qmdp + physics/success" in statistics_table(rows)

@@ -6,8 +6,9 @@ pushes on it. :class:`PegInHole2DVector` steps a batch of them as one tensor bat
 manipulation states (:class:`PegInHoleStates`) are integer ids computed in one vectorized pass
 from poses (true or estimated) and contact classes. :class:`PegInHoleFilter` tracks the peg in
 the grasp with the RBPF over contact classes (init, step and restart on the environment's noisy
-observations), on a :class:`PegInHoleBeliefModel`: the switching model fitted from recorded
-steps (:class:`PegTransitions`) and the manipulation graph.
+observations), on a :class:`PegInHoleBeliefModel` (the switching model fitted from recorded
+steps, :class:`PegTransitions`, and the manipulation graph) or a :class:`PegPhysicsModel` (the
+peg's mode-decoupled contact dynamics between the fingers and against the hole, and the graph).
 
 Importing this package registers ``"torchcontact/PegInHole2D-v0"`` with gymnasium, its spec's
 ``max_episode_steps`` being ``PegInHoleConfig().max_steps`` (``gymnasium.make`` wraps the
@@ -23,11 +24,12 @@ from __future__ import annotations
 
 import gymnasium
 
-from torchcontact.envs._belief_filter import PegBelief, PegInHoleFilter
-from torchcontact.envs._belief_model import PegControl, PegInHoleBeliefModel
+from torchcontact.envs._belief_filter import PegBelief, PegBeliefModel, PegInHoleFilter
+from torchcontact.envs._belief_model import GraphClassTransition, PegControl, PegInHoleBeliefModel
 from torchcontact.envs._config import PegInHoleConfig
 from torchcontact.envs._env import PegInHole2D
 from torchcontact.envs._observe import START_KEYS, observation_bounds, occluded
+from torchcontact.envs._physics_model import PegPhysicsModel, filter_scene, slot_map
 from torchcontact.envs._states import (
     CONTACT_TABLE,
     ENV_BELOW,
@@ -93,7 +95,9 @@ __all__ = [
     "PEG_IN_HOLE_ID",
     "PEG_IN_HOLE_OCCLUDED_ID",
     "START_KEYS",
+    "GraphClassTransition",
     "PegBelief",
+    "PegBeliefModel",
     "PegControl",
     "PegInHole2D",
     "PegInHole2DVector",
@@ -102,11 +106,14 @@ __all__ = [
     "PegInHoleFilter",
     "PegInHoleStates",
     "PegInHoleTask",
+    "PegPhysicsModel",
     "PegTransitions",
     "Physics",
     "build_scene",
     "contact_classes",
+    "filter_scene",
     "manipulation_state",
     "observation_bounds",
     "occluded",
+    "slot_map",
 ]

@@ -1,9 +1,11 @@
-"""The peg-in-hole filter: the RBPF of a fitted belief model, on the environment's observations.
+"""The peg-in-hole filter: the RBPF of a belief model, on the environment's observations.
 
 :class:`PegInHoleFilter` holds no fitted data: it unpacks the noisy observations of
 ``PegInHole2D`` (camera pose, gripper pose, tactile readings), starts, steps and restarts the
-:class:`~torchcontact.filters.RBPF` of a :class:`~torchcontact.envs.PegInHoleBeliefModel`, and
-keeps each particle's manipulation-state id with the belief (:class:`PegBelief`).
+:class:`~torchcontact.filters.RBPF` of a belief model (the fitted
+:class:`~torchcontact.envs.PegInHoleBeliefModel` or the contact physics'
+:class:`~torchcontact.envs.PegPhysicsModel`), and keeps each particle's manipulation-state id
+with the belief (:class:`PegBelief`).
 """
 
 from __future__ import annotations
@@ -17,7 +19,9 @@ import torch
 from numpy.typing import NDArray
 from torch import Tensor
 
-from torchcontact.envs._belief_model import PegControl, PegInHoleBeliefModel, compose
+from torchcontact.envs._belief_model import PegControl, PegInHoleBeliefModel
+from torchcontact.envs._physics_model import PegPhysicsModel
+from torchcontact.envs._states import NUM_CONTACT_CLASSES
 from torchcontact.envs._transitions import as_tensor
 from torchcontact.filters import RBPF, Gaussian, Proposal, RBPFBelief, ResamplingMethod
 
@@ -42,15 +46,20 @@ class PegBelief:
     state_ids: Tensor
 
 
+#: The belief models the filter runs on.
+PegBeliefModel = PegInHoleBeliefModel | PegPhysicsModel
+
+
 class PegInHoleFilter:
-    """The RBPF of :class:`PegInHoleBeliefModel` over a batch of episodes, on observations.
+    """The RBPF of a peg belief model over a batch of episodes, on observations.
 
     Observations are those of ``PegInHole2D(observation="noisy")`` (or the vector version):
     mappings with ``peg_pose (B, 3)``, ``gripper_pose (B, 3)`` and ``tactile (B, S)``; a row
     of ``peg_pose`` that is all NaN (the camera lost the peg) is no measurement.
 
     Args:
-        model: the fitted model.
+        model: the fitted model (:class:`PegInHoleBeliefModel`) or the physics model
+            (:class:`PegPhysicsModel`).
         num_particles: particles per episode.
         proposal: ``"bootstrap"`` or ``"all_modes"`` (see :class:`RBPF`).
         resampling: the resampling scheme.
@@ -59,16 +68,19 @@ class PegInHoleFilter:
 
     def __init__(
         self,
-        model: PegInHoleBeliefModel,
+        model: PegBeliefModel,
         *,
         num_particles: int = 64,
         proposal: Proposal = "bootstrap",
         resampling: ResamplingMethod = "systematic",
         ess_threshold: float = 0.5,
     ) -> None:
-        if not isinstance(model, PegInHoleBeliefModel):
-            raise ValueError(f"model must be a PegInHoleBeliefModel, got {type(model).__name__}")
-        self.model = model
+        if not isinstance(model, (PegInHoleBeliefModel, PegPhysicsModel)):
+            raise ValueError(
+                f"model must be a PegInHoleBeliefModel or PegPhysicsModel, got "
+                f"{type(model).__name__}"
+            )
+        self.model: PegBeliefModel = model
         self.rbpf = RBPF(
             model,
             num_particles,
@@ -89,7 +101,7 @@ class PegInHoleFilter:
             observation: the first observation of each episode (batch ``B``).
         """
         y, gripper, _ = self._unpack(observation)
-        return self._belief(self.rbpf.init(self.model.grasp_posterior(y, gripper)), gripper)
+        return self._belief(self.rbpf.init(self.model.initial_gaussian(y, gripper)), gripper)
 
     def step(
         self,
@@ -109,12 +121,17 @@ class PegInHoleFilter:
         """
         y, gripper, readings = self._unpack(observation)
         actions = as_tensor(actions, torch.long)
-        control = PegControl(state_ids=belief.state_ids, gripper_after=gripper, actions=actions)
+        control = PegControl(
+            state_ids=belief.state_ids,
+            gripper_after=gripper,
+            actions=actions,
+            gripper_before=belief.gripper,
+        )
         rbpf = self.rbpf.step(
             belief.rbpf,
             y,
             action=actions,
-            extra_log_likelihood=self.model.tactile_log_likelihood(readings),
+            extra_log_likelihood=self.model.tactile_evidence(readings, belief.rbpf, control),
             control=control,
             generator=generator,
         )
@@ -150,12 +167,19 @@ class PegInHoleFilter:
 
     def particle_poses(self, belief: PegBelief) -> Tensor:
         """``(B, N, 3)`` each particle's mean peg pose in the world frame."""
-        return compose(belief.gripper.unsqueeze(1), belief.rbpf.gaussians.mean)
+        return self.model.particle_poses(belief.rbpf, belief.gripper)
 
     def particle_states(self, belief: PegBelief) -> tuple[Tensor, Tensor]:
         """Each particle's manipulation-state id ``(B, N)`` (:attr:`PegBelief.state_ids`, not
         computed again) and weight ``(B, N)``."""
         return belief.state_ids, belief.rbpf.log_weights.exp()
+
+    def class_marginals(self, belief: PegBelief) -> Tensor:
+        """``(B, C)`` the belief's probability of each of the ``C = 24`` contact classes."""
+        classes = self.model.particle_classes(belief.rbpf)
+        weights = belief.rbpf.log_weights.exp()
+        out = weights.new_zeros(weights.shape[0], NUM_CONTACT_CLASSES)
+        return out.scatter_add_(1, classes, weights)
 
     def pose_mean(self, belief: PegBelief) -> Tensor:
         """``(B, 3)`` the weighted mean of the peg's world pose."""
@@ -193,4 +217,4 @@ class PegInHoleFilter:
         return y, gripper, readings
 
 
-__all__ = ["PegBelief", "PegInHoleFilter"]
+__all__ = ["PegBelief", "PegBeliefModel", "PegInHoleFilter"]

@@ -43,11 +43,14 @@ class PegControl:
             once per step and keeps them in its belief).
         gripper_after: ``(B, 3)`` gripper poses (world) after the step.
         actions: ``(B,)`` long actions of the step.
+        gripper_before: ``(B, 3)`` gripper poses (world) before the step (the fingers' motion
+            of :class:`~torchcontact.envs.PegPhysicsModel`; the fitted model needs none).
     """
 
     state_ids: Tensor
     gripper_after: Tensor
     actions: Tensor
+    gripper_before: Tensor | None = None
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
@@ -155,7 +158,7 @@ class PegInHoleBeliefModel:
         B = actions.shape[0]
         gripper = control.gripper_after
         H = _vision_matrix(gripper)
-        rows = self.state_transition[self.state_row[control.state_ids], actions[:, None]]
+        rows = class_rows(self.state_transition, self.state_row, control.state_ids, actions)
         return ModeDynamics(
             F=torch.eye(3, dtype=_F64).expand(K, 3, 3),
             c=self.displacement[actions],
@@ -183,11 +186,28 @@ class PegInHoleBeliefModel:
         posterior, _ = kf_update(start, y, H=_vision_matrix(gripper), d=gripper, R=self.vision_cov)
         return posterior
 
+    def initial_gaussian(self, y: Tensor, gripper: Tensor) -> Gaussian:
+        """The filter's belief at the start of episodes, :meth:`grasp_posterior`."""
+        return self.grasp_posterior(y, gripper)
+
+    def particle_poses(self, belief: RBPFBelief, gripper: Tensor) -> Tensor:
+        """``(B, N, 3)`` each particle's mean grasp placed in the gripper ``gripper (B, 3)``
+        (world frame)."""
+        return compose(gripper.unsqueeze(1), belief.gaussians.mean)
+
+    def particle_classes(self, belief: RBPFBelief) -> Tensor:
+        """``(B, N)`` long contact class of each particle: its mode."""
+        return belief.modes
+
     def particle_state_ids(self, belief: RBPFBelief, gripper: Tensor) -> Tensor:
         """Manipulation-state ids of the particles: their mean grasp placed in the gripper
         ``gripper (B, 3)`` and their contact class; ``(B, N)`` long."""
-        pose = compose(gripper.unsqueeze(1), belief.gaussians.mean)
-        return self.task.states.ids(pose, belief.modes)
+        return self.task.states.ids(self.particle_poses(belief, gripper), belief.modes)
+
+    def tactile_evidence(self, readings: Tensor, belief: RBPFBelief, control: PegControl) -> Tensor:
+        """``(B, K)`` :meth:`tactile_log_likelihood` of the readings ``(B, S)`` after a step
+        (the belief and control are not needed: the classes' trigger rates are fitted)."""
+        return self.tactile_log_likelihood(readings)
 
     def tactile_log_likelihood(self, readings: Tensor) -> Tensor:
         """``(B, K)`` log-likelihood of tactile readings ``(B, S)`` (bool) under each class."""
@@ -227,25 +247,12 @@ class PegInHoleBeliefModel:
         """
         if not isinstance(transitions, PegTransitions) or transitions.num_steps == 0:
             raise ValueError("transitions must be a non-empty PegTransitions")
-        if not isinstance(graph, ManipulationGraph) or graph.num_actions != len(ACTION_NAMES):
-            raise ValueError(f"graph must be a ManipulationGraph with {len(ACTION_NAMES)} actions")
-        if not (isinstance(graph_prior, (int, float)) and graph_prior > 0):
-            raise ValueError(f"graph_prior must be > 0, got {graph_prior!r}")
         if not (isinstance(min_samples, int) and min_samples >= 2):
             raise ValueError(f"min_samples must be an int >= 2, got {min_samples!r}")
         displacement, process_cov = _fit_motion(transitions, min_samples)
         trigger = _fit_trigger(transitions)
-        source_ids, per_state = _class_counts(graph, task)  # (M,), (M, A, K)
-        A, K = len(ACTION_NAMES), NUM_CONTACT_CLASSES
-        by_class = torch.zeros(A, K, K, dtype=_F64)
-        by_class.index_add_(1, source_ids % K, per_state.transpose(0, 1))
-        class_transition = (by_class + 1e-3) / (by_class + 1e-3).sum(-1, keepdim=True)
-        prior = class_transition[:, source_ids % K].transpose(0, 1)  # (M, A, K)
-        rows = (per_state + graph_prior * prior) / (per_state.sum(-1, keepdim=True) + graph_prior)
-        M = source_ids.shape[0]
-        state_row = M + torch.arange(task.states.num_states) % K  # the class-level rows
-        state_row[source_ids] = torch.arange(M)
-        state_transition = torch.cat([rows, class_transition.transpose(0, 1)])
+        graph_rows = GraphClassTransition.fit(graph, task=task, graph_prior=graph_prior)
+        K = NUM_CONTACT_CLASSES
         start = transitions.first
         initial = torch.bincount(transitions.classes[start], minlength=K).to(_F64) + 1e-3
         frequency = torch.bincount(transitions.next_classes, minlength=K).to(_F64) + 1e-3
@@ -259,13 +266,81 @@ class PegInHoleBeliefModel:
             displacement=displacement,
             process_cov=process_cov,
             trigger=trigger,
-            class_transition=class_transition,
-            state_transition=state_transition,
-            state_row=state_row,
+            class_transition=graph_rows.class_transition,
+            state_transition=graph_rows.state_transition,
+            state_row=graph_rows.state_row,
             initial=initial / initial.sum(),
             class_prior=frequency / frequency.sum(),
             grasp_prior=Gaussian(mean, cov),
         )
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class GraphClassTransition:
+    r"""The manipulation graph as a transition between contact classes, per manipulation state.
+
+    For a particle in manipulation state :math:`m = (\mathrm{cell}, k)` taking action
+    :math:`a`, the next class's distribution is the graph's counts :math:`N(m, a, k′)`
+    (aggregated over the next states' cells) shrunk toward the class-level transition
+    :math:`p_c(k′ \mid k, a)` (the counts of every state of class :math:`k`, plus
+    :math:`10^{-3}`): :math:`p(k′ \mid m, a) = (N(m, a, k′) + β\, p_c(k′ \mid k, a)) /
+    (N(m, a) + β)` with :math:`β` = ``graph_prior``. States the graph never left get the
+    class-level row. Both belief models of the peg task
+    (:class:`PegInHoleBeliefModel`, :class:`~torchcontact.envs.PegPhysicsModel`) take their
+    mode transition from it.
+
+    Attributes:
+        class_transition: ``(A, K, K)`` class-level transition ``p_c(k′ | k, a)``.
+        state_transition: ``(M + K, A, K)`` next-class distributions: one row per manipulation
+            state the graph saw as a source, then the class-level row of each class.
+        state_row: ``(num_states,)`` long row of each manipulation state id in
+            ``state_transition``.
+    """
+
+    class_transition: Tensor
+    state_transition: Tensor
+    state_row: Tensor
+
+    @classmethod
+    def fit(
+        cls, graph: ManipulationGraph, *, task: PegInHoleTask, graph_prior: float = 1.0
+    ) -> GraphClassTransition:
+        """The rows of a graph over the task's manipulation states.
+
+        Args:
+            graph: the manipulation graph (e.g. ``DynaQ.graph``); its states must be keys of
+                ``task.states``.
+            task: the task.
+            graph_prior: ``β > 0``.
+
+        Raises:
+            ValueError: an argument is invalid.
+        """
+        if not isinstance(graph, ManipulationGraph) or graph.num_actions != len(ACTION_NAMES):
+            raise ValueError(f"graph must be a ManipulationGraph with {len(ACTION_NAMES)} actions")
+        if not (isinstance(graph_prior, (int, float)) and graph_prior > 0):
+            raise ValueError(f"graph_prior must be > 0, got {graph_prior!r}")
+        source_ids, per_state = _class_counts(graph, task)  # (M,), (M, A, K)
+        A, K = len(ACTION_NAMES), NUM_CONTACT_CLASSES
+        by_class = torch.zeros(A, K, K, dtype=_F64)
+        by_class.index_add_(1, source_ids % K, per_state.transpose(0, 1))
+        class_transition = (by_class + 1e-3) / (by_class + 1e-3).sum(-1, keepdim=True)
+        prior = class_transition[:, source_ids % K].transpose(0, 1)  # (M, A, K)
+        rows = (per_state + graph_prior * prior) / (per_state.sum(-1, keepdim=True) + graph_prior)
+        M = source_ids.shape[0]
+        state_row = M + torch.arange(task.states.num_states) % K  # the class-level rows
+        state_row[source_ids] = torch.arange(M)
+        return cls(
+            class_transition=class_transition,
+            state_transition=torch.cat([rows, class_transition.transpose(0, 1)]),
+            state_row=state_row,
+        )
+
+
+def class_rows(state_transition: Tensor, state_row: Tensor, ids: Tensor, actions: Tensor) -> Tensor:
+    """``(B, N, K)`` next-class distributions of particles in states ``ids (B, N)`` taking
+    actions ``(B,)`` (rows of :class:`GraphClassTransition`)."""
+    return state_transition[state_row[ids], actions[:, None]]
 
 
 def compose(gripper: Tensor, grasp: Tensor) -> Tensor:
@@ -336,4 +411,4 @@ def _class_counts(graph: ManipulationGraph, task: PegInHoleTask) -> tuple[Tensor
     return sources, per_state
 
 
-__all__ = ["PegControl", "PegInHoleBeliefModel", "compose"]
+__all__ = ["GraphClassTransition", "PegControl", "PegInHoleBeliefModel", "class_rows", "compose"]

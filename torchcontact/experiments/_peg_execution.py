@@ -17,6 +17,7 @@ from torchcontact.envs import (
     NUM_CONTACT_CLASSES,
     PegBelief,
     PegInHole2DVector,
+    PegInHoleBeliefModel,
     PegInHoleConfig,
     PegInHoleFilter,
 )
@@ -44,9 +45,8 @@ def belief_features(filt: PegInHoleFilter, belief: PegBelief, lookup: QLookup) -
     relative = filt.model.task.states.relative_pose(filt.particle_poses(belief))  # (B, N, 3)
     mean = (weights.unsqueeze(-1) * relative).sum(1)
     spread = (weights.unsqueeze(-1) * (relative - mean.unsqueeze(1)) ** 2).sum(1)
-    variance = spread + (
-        weights[..., None] * torch.diagonal(rbpf.gaussians.cov, dim1=-2, dim2=-1)
-    ).sum(1)
+    pose_variance = torch.diagonal(rbpf.gaussians.cov, dim1=-2, dim2=-1)[..., :3]
+    variance = spread + (weights[..., None] * pose_variance).sum(1)
     marginal = rbpf.mode_marginals()
     entropy = -(marginal * torch.log(marginal.clamp(min=1e-300))).sum(-1, keepdim=True)
     ess = rbpf.ess().unsqueeze(-1) / filt.num_particles
@@ -98,17 +98,22 @@ class Evaluation:
     """Outcome of :func:`evaluate` on ``E`` episodes.
 
     Attributes:
-        setting: the execution setting.
+        setting: the execution setting's label (e.g. ``"qmdp + physics"``).
         successes: ``(E,)`` bool.
         lengths: ``(E,)`` steps per episode.
         seconds_per_decision: wall time of one batched decision over the ``E`` episodes,
             filter update included.
+        true_class_log_prob: mean over every step of every episode of the log-probability
+            that the filter's belief gives the true contact class after the step
+            (:meth:`~torchcontact.envs.PegInHoleFilter.class_marginals`, floored at
+            ``1e-12``); NaN for settings without a filter.
     """
 
     setting: str
     successes: NDArray[np.bool_]
     lengths: NDArray[np.int64]
     seconds_per_decision: float
+    true_class_log_prob: float = math.nan
 
     @property
     def success_rate(self) -> float:
@@ -120,6 +125,16 @@ class Evaluation:
         """Mean length of the successful episodes (NaN if none)."""
         return float(self.lengths[self.successes].mean()) if self.successes.any() else math.nan
 
+    def metrics(self) -> dict[str, float]:
+        """The table's numbers: ``success`` (fraction), ``steps`` (mean of the successful
+        episodes), ``log_p_true_class`` and ``ms_per_decision``."""
+        return {
+            "success": self.success_rate,
+            "steps": self.mean_steps,
+            "log_p_true_class": self.true_class_log_prob,
+            "ms_per_decision": 1e3 * self.seconds_per_decision,
+        }
+
 
 def evaluate(
     env: PegInHole2DVector,
@@ -129,13 +144,15 @@ def evaluate(
     seed: int,
     filt: PegInHoleFilter | None = None,
     network: QNetwork | None = None,
+    label: str | None = None,
 ) -> Evaluation:
     """Run one episode per sub-environment of ``env`` (noisy observations) under a setting.
 
     * ``"oracle"``: greedy on the true manipulation state;
     * ``"raw"``: greedy on the state of the raw observation: the camera's pose and the
       contact class that best explains the tactile readings
-      (:meth:`~torchcontact.envs.PegInHoleBeliefModel.most_likely_classes` of ``filt``'s model);
+      (:meth:`~torchcontact.envs.PegInHoleBeliefModel.most_likely_classes` of ``filt``'s
+      model, a fitted one);
     * ``"qmdp"``: QMDP over the particles of ``filt`` (:func:`qmdp_actions`);
     * ``"neural"``: ``network`` on :func:`belief_features` of ``filt``'s belief.
 
@@ -151,8 +168,11 @@ def evaluate(
         setting: one of :data:`SETTINGS`.
         lookup: the tabular Q values.
         seed: seed of the episodes and of the generator of the filter and the tie-breaking.
-        filt: the filter (``"qmdp"``, ``"neural"``).
+        filt: the filter (``"qmdp"``, ``"neural"``; for ``"raw"`` one on a
+            :class:`~torchcontact.envs.PegInHoleBeliefModel`, whose tactile model reads the
+            sensors).
         network: the neural Q function (``"neural"``).
+        label: the :attr:`Evaluation.setting` (default: ``setting``).
 
     Raises:
         ValueError: a missing or invalid argument.
@@ -165,6 +185,8 @@ def evaluate(
         raise ValueError(f"filt is required for setting {setting!r} (its model reads the sensors)")
     if setting == "neural" and network is None:
         raise ValueError("network is required for setting 'neural'")
+    if setting == "raw" and not isinstance(getattr(filt, "model", None), PegInHoleBeliefModel):
+        raise ValueError("filt must run on a PegInHoleBeliefModel for setting 'raw'")
     E = env.num_envs
     states = env.states
     generator = torch.Generator().manual_seed(seed)
@@ -176,6 +198,7 @@ def evaluate(
     successes = np.zeros(E, dtype=bool)
     lengths = np.zeros(E, dtype=np.int64)
     seconds, decisions = 0.0, 0
+    log_prob, scored = 0.0, 0
     while live.any():
         start = time.perf_counter()
         if setting == "oracle":
@@ -184,6 +207,7 @@ def evaluate(
         elif setting == "raw":
             assert filt is not None
             readings = torch.as_tensor(observation["tactile"]).bool()
+            assert isinstance(filt.model, PegInHoleBeliefModel)
             classes = filt.model.most_likely_classes(readings)
             raw_ids = states.ids(torch.as_tensor(observation["peg_pose"]), classes)
             choice = greedy_action(lookup.values(raw_ids)[0], generator=generator)
@@ -206,11 +230,22 @@ def evaluate(
             start = time.perf_counter()
             belief = filt.step(belief, actions, observation, generator=generator)
             seconds += time.perf_counter() - start
+            true_class = torch.as_tensor(info["contact_class"])[torch.from_numpy(live)]
+            marginal = filt.class_marginals(belief)[torch.from_numpy(live)]
+            p_true = marginal.gather(1, true_class[:, None]).clamp(min=1e-12)
+            log_prob += float(p_true.log().sum())
+            scored += int(live.sum())
         decisions += 1
         lengths[live] += 1
         successes |= live & info["success"]
         live = live & ~(terminated | truncated)
-    return Evaluation(setting, successes, lengths, seconds / max(decisions, 1))
+    return Evaluation(
+        setting if label is None else label,
+        successes,
+        lengths,
+        seconds / max(decisions, 1),
+        log_prob / scored if scored else math.nan,
+    )
 
 
 def _noisy(observation: object) -> Mapping[str, Any]:
@@ -228,24 +263,57 @@ def evaluate_settings(
     seed: int,
     filt: PegInHoleFilter | None = None,
     network: QNetwork | None = None,
+    filters: Mapping[str, PegInHoleFilter] | None = None,
 ) -> list[Evaluation]:
-    """:func:`evaluate` each setting on the same ``num_episodes`` seeded episodes."""
+    """:func:`evaluate` each setting on the same ``num_episodes`` seeded episodes.
+
+    Args:
+        settings: the settings, in table order.
+        num_episodes: episodes per setting.
+        config: the task configuration (its camera noise).
+        lookup: the tabular Q values.
+        seed: seed of the episodes (the same for every setting).
+        filt: the filter of ``"raw"`` (its fitted tactile model), and of ``"qmdp"`` and
+            ``"neural"`` unless ``filters`` is given.
+        network: the neural Q function (``"neural"``).
+        filters: belief filters by name: ``"qmdp"`` and ``"neural"`` run once with each,
+            labelled ``"<setting> + <name>"`` (e.g. ``{"fitted": ..., "physics": ...}``).
+    """
     env = PegInHole2DVector(num_envs=num_episodes, config=config, observation="noisy")
-    return [
-        evaluate(env, setting, lookup=lookup, seed=seed, filt=filt, network=network)
-        for setting in settings
-    ]
+    evaluations = []
+    for setting in settings:
+        if setting in ("qmdp", "neural") and filters:
+            for name, named in filters.items():
+                evaluations.append(
+                    evaluate(
+                        env,
+                        setting,
+                        lookup=lookup,
+                        seed=seed,
+                        filt=named,
+                        network=network,
+                        label=f"{setting} + {name}",
+                    )
+                )
+        else:
+            evaluations.append(
+                evaluate(env, setting, lookup=lookup, seed=seed, filt=filt, network=network)
+            )
+    return evaluations
 
 
 def results_table(evaluations: list[Evaluation]) -> str:
-    """A markdown table: success rate, mean steps of successes, time per batched decision."""
+    """A markdown table: success rate, mean steps of successes, the belief's mean
+    log-probability of the true contact class per step, time per batched decision."""
     lines = [
-        "| setting | episodes | success | mean steps (successes) | ms per decision (batch) |",
-        "|---|---:|---:|---:|---:|",
+        "| setting | episodes | success | mean steps (successes) | log p(true contact class) "
+        "| ms per decision (batch) |",
+        "|---|---:|---:|---:|---:|---:|",
     ]
     for e in evaluations:
+        log_p = "–" if math.isnan(e.true_class_log_prob) else f"{e.true_class_log_prob:.2f}"
         lines.append(
             f"| {e.setting} | {e.successes.size} | {100 * e.success_rate:.0f} % | "
-            f"{e.mean_steps:.1f} | {1e3 * e.seconds_per_decision:.1f} |"
+            f"{e.mean_steps:.1f} | {log_p} | {1e3 * e.seconds_per_decision:.1f} |"
         )
     return "\n".join(lines)

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 import torch
 from numpy.typing import NDArray
+from torch import Tensor
 
 from torchcontact.envs import PegInHole2DVector, PegInHoleStates, PegTransitions
 from torchcontact.experiments._q_lookup import QLookup
@@ -136,6 +137,9 @@ class RoundResult:
         successes: ``(B,)`` bool, the peg reached the insertion depth.
         td_error: mean absolute TD error of the learning updates (NaN if none).
         transitions: every step taken, for fitting the filter's model.
+        slot_modes: ``(T, S)`` long per-slot contact modes of the scene at the last simulator
+            step of each of those steps (the mode table of
+            :class:`~torchcontact.envs.PegPhysicsModel`).
     """
 
     returns: NDArray[np.float64]
@@ -143,6 +147,7 @@ class RoundResult:
     successes: NDArray[np.bool_]
     td_error: float
     transitions: PegTransitions
+    slot_modes: Tensor
 
 
 def run_round(
@@ -191,6 +196,7 @@ def run_round(
     successes = np.zeros(B, dtype=bool)
     td_errors: list[float] = []
     parts: list[PegTransitions] = []
+    modes: list[Tensor] = []
     lookup = None if learn else QLookup(agent, env.states)
     generator = torch.Generator().manual_seed(seed)
     while live.any():
@@ -215,6 +221,7 @@ def run_round(
         parts.append(
             PegTransitions.from_infos(info, actions, next_info, valid=live, first=first & live)
         )
+        modes.append(env.physics.mode[torch.from_numpy(live)])
         for b in np.flatnonzero(live):
             if learn:
                 s, a, s2 = states[b], int(actions[b]), next_states[b]
@@ -235,4 +242,5 @@ def run_round(
         successes=successes,
         td_error=float(np.mean(td_errors)) if td_errors else math.nan,
         transitions=PegTransitions.concat(parts),
+        slot_modes=torch.cat(modes),
     )
