@@ -26,7 +26,6 @@ from torchcontact.sim._rigid_body import (
     free_angular_velocity,
     spatial_mass_matrix,
     tangent_directions,
-    world_inertia,
 )
 from torchcontact.sim._robot_member import RobotStep, robot_step
 from torchcontact.sim._scene import Scene
@@ -612,9 +611,11 @@ def _spatial_inertia(
     M = spatial_mass_matrix(masses, inertias, quaternion)
     omega = v[..., 3:]
     omega_free = free_angular_velocity(inertias, quaternion, omega, scene.h)
-    inertia_world = world_inertia(inertias, quaternion)
-    torque = (inertia_world @ (omega_free - omega).unsqueeze(-1)).squeeze(-1) / scene.h
-    return M, torch.cat([torch.zeros_like(torque), torque], dim=-1)
+    # M (0, ω_free − ω) / h: the angular blocks of M are the world inertias (its linear rows
+    # meet only the zeros).
+    change = torch.cat([torch.zeros_like(omega), omega_free - omega], dim=-1).flatten(-2)
+    wrench = (M @ change.unsqueeze(-1)).squeeze(-1) / scene.h
+    return M, wrench.unflatten(-1, (layout.num_dynamic, 6))
 
 
 def robot_inputs(
