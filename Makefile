@@ -6,6 +6,7 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+WORKERS ?= auto
 
 .PHONY: venv demo test lint typecheck docs pytest pytest-portable bench clean
 
@@ -34,18 +35,21 @@ docs: venv
 	site=$$(mktemp -d) && NO_MKDOCS_2_WARNING=1 $(PY) -m mkdocs build --strict --quiet --site-dir "$$site" \
 		&& rm -rf "$$site"
 
+# The suite on every core (pytest-xdist), one torch thread per worker, with the CPU's own
+# (AVX2 or AVX-512) kernels.
 pytest: venv
-	MPLBACKEND=Agg $(PY) -m pytest
+	OMP_NUM_THREADS=1 MPLBACKEND=Agg $(PY) -m pytest -n $(WORKERS) --dist loadfile
 
 # The numerical tests again on other floating-point kernels: MKL's CPU-independent code path
-# (MKL_CBWR=COMPATIBLE) and one thread, where the run above used the CPU's own (AVX2 or
-# AVX-512) kernels and two threads. A test that judges digits the kernels decide fails here on
-# any machine, not only on another CPU.
+# (MKL_CBWR=COMPATIBLE) and two torch threads, where the run above used the CPU's own kernels
+# and one thread. A test that judges digits the kernels or the threads decide fails here on any
+# machine, not only on another CPU.
 pytest-portable: venv
-	MKL_CBWR=COMPATIBLE OMP_NUM_THREADS=1 MPLBACKEND=Agg $(PY) -m pytest -q -p no:cacheprovider \
+	MKL_CBWR=COMPATIBLE OMP_NUM_THREADS=2 MPLBACKEND=Agg $(PY) -m pytest -q -p no:cacheprovider \
 		tests/contact tests/sim tests/filters tests/envs tests/states
 
-test: lint typecheck docs pytest pytest-portable
+# `docs` is not a step of `test`: tests/test_docs.py builds the site in strict mode.
+test: lint typecheck pytest pytest-portable
 
 bench: venv
 	$(PY) -m pip install --quiet -c constraints.txt -e ".[dev,docs,sweep,bench]"
