@@ -158,8 +158,15 @@ class SpatialContactModel:
     (``initial_impulses``), where its iterated Tikhonov iterations are a fixed point, so the
     derivative is that of the converged system (the implicit-function derivative, whose
     iterates converge as the solve's own), not that of a finite number of iterations from
-    zero, which differs at redundant contacts. The discrete choices of the geometry (each
-    slot's closest features, the candidate slots) are held.
+    zero, which differs at redundant contacts. This is exact wherever the mode's equalities
+    fix the step (sticking redundant corners, a box sliding on four corners: the friction rows
+    share the normal rows' redundancy; tested against finite differences). Where they do
+    not, i.e. the step depends on how ``solve_mode`` splits the impulses among redundant
+    rows (a finger's sticking friction that could carry part of the weight of a box sliding
+    on its corners), the Jacobian is that of the steps whose split stays nearest the
+    converged one, not of ``solve_mode``'s own split rule. The discrete choices of the
+    geometry (each slot's closest features, the candidate slots, the friction directions'
+    hemisphere of :func:`~torchcontact.sim.tangent_basis`) are held.
 
     Modes ruled out. A mode whose equalities contradict each other at :math:`\bar x` (its
     ``solve_mode`` does not converge) gets the log-weight :math:`-\infty` for the step
