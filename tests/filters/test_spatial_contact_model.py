@@ -22,6 +22,7 @@ from torchcontact.filters import (
     SpatialContactModel,
     ekf_predict,
     ekf_update,
+    project_out_of_contact,
 )
 from torchcontact.geometry import Box, HalfSpace, Sphere, quat_exp, quat_mul, quat_to_matrix
 from torchcontact.robots import load
@@ -475,3 +476,29 @@ def test_bad_step_inputs_name_the_argument() -> None:
         model.tactile_log_likelihood(torch.zeros(3), pose=x[:7], control=control)
     with pytest.raises(ValueError, match="pose"):
         model.tactile_log_likelihood(torch.zeros(0, dtype=torch.bool), pose=x[:6], control=control)
+
+
+def test_projection_lifts_a_box_out_of_the_table() -> None:
+    """A box 5 mm into the table, isotropic tangent covariance p: the four bottom corners'
+    pseudo-measurements 0 = φ + δz ± b δθx ∓ a δθy (+ e, var σ²) decouple z, whose posterior
+    is the closed-form scalar update var = 1 / (1/p + 4/σ²), δz = var · 4 · 5 mm / σ²; the
+    orientation and twist keep their means."""
+    scene = hand_scene(height=1.0)
+    model = model_of(scene, torch.zeros(1, scene.num_slots, dtype=torch.long))
+    depth, p, sigma = 0.005, 1e-4, 1e-3
+    x = state((0.01, -0.02, HALF[2] - depth), (0.1, 0.0, 0.0, 0.0, 0.0, 0.2))
+    belief = RBPF(model, 2).init(Gaussian(x, p * torch.eye(12, dtype=DT)))
+    zeros = torch.zeros(4, dtype=DT)
+    control = RobotControl(q_robot=zeros, v_robot=zeros)
+    projected = project_out_of_contact(belief, scene, gap_sigma=sigma, control=control)
+    var = 1.0 / (1.0 / p + 4.0 / sigma**2)
+    lifted = x.clone()
+    lifted[2] += var * 4.0 * depth / sigma**2
+    for i in range(2):
+        torch.testing.assert_close(projected.gaussians.mean[i], lifted, rtol=0.0, atol=1e-12)
+        torch.testing.assert_close(
+            projected.gaussians.cov[i, 2, 2], torch.tensor(var, dtype=DT), rtol=1e-9, atol=0.0
+        )
+    # Nothing penetrates: the belief comes back unchanged.
+    above = RBPF(model, 2).init(Gaussian(state((0.0, 0.0, 0.2)), p * torch.eye(12, dtype=DT)))
+    assert project_out_of_contact(above, scene, gap_sigma=sigma, control=control) is above

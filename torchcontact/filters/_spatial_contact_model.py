@@ -24,7 +24,7 @@ from torchcontact.filters._manifold import SE3
 from torchcontact.filters._mode_gate import check_gate, gate_log_weight
 from torchcontact.filters._rbpf_belief import RBPFBelief
 from torchcontact.filters._switching import LinearSwitchingModel, ModeDynamics
-from torchcontact.geometry import quat_to_matrix
+from torchcontact.geometry import SlotGeometry, quat_to_matrix
 from torchcontact.sim import Rollout, Scene, SceneState, contact_problem, integrate_poses
 from torchcontact.states import ContactSet, PartnerKind, TactileArray
 
@@ -403,7 +403,7 @@ class SpatialContactModel:
         mean = belief.mean()
         batch = mean.shape[:-1]
         flat = mean.reshape(-1, STATE_DIM).detach().to(torch.float64)
-        ctrl = self._control(control, batch)
+        ctrl = check_control(self.scene, control, batch, device=self.device)
         likely = belief.mode_marginals().reshape(-1, self.num_modes).argmax(-1)
         lin = self._linearize(flat, ctrl, chart_mode=likely)
         K, dtype = self.num_modes, self.dtype
@@ -448,10 +448,10 @@ class SpatialContactModel:
         if bool(((mode < 0) | (mode >= self.num_modes)).any()):
             raise ValueError(f"mode: ids must lie in [0, {self.num_modes})")
         batch = torch.broadcast_shapes(x.shape[:-1], mode.shape)
-        ctrl = self._control(control, batch, x.dtype)
+        ctrl = check_control(self.scene, control, batch, x.dtype, self.device)
         modes = self.modes[mode.expand(batch)].reshape(-1, self.scene.num_slots)
         flat = x.expand(*batch, STATE_DIM).reshape(-1, STATE_DIM)
-        v_next = solve_mode(self._problem(flat, ctrl), modes).v_next
+        v_next = solve_mode(robot_contact_problem(self.scene, flat, ctrl)[0], modes).v_next
         return self._advance(flat, v_next).reshape(*batch, STATE_DIM)
 
     def linearize(
@@ -470,7 +470,7 @@ class SpatialContactModel:
         """
         _check_state(x)
         batch = x.shape[:-1]
-        ctrl = self._control(control, batch)
+        ctrl = check_control(self.scene, control, batch, device=self.device)
         lin = self._linearize(x.reshape(-1, STATE_DIM).detach().to(torch.float64), ctrl)
         K = self.num_modes
         return (
@@ -494,7 +494,9 @@ class SpatialContactModel:
         slots = self._acting_slots.to(x.device)
         modes = self.modes.to(x.device).index_select(1, slots).expand(P, K, -1)
         with torch.no_grad():
-            problem = _per_mode(_select_slots(self._problem(x, control), slots), K)
+            problem = _per_mode(
+                _select_slots(robot_contact_problem(self.scene, x, control)[0], slots), K
+            )
             solution = solve_mode_unchecked(problem, modes)
             f = self._advance(x.unsqueeze(1), solution.v_next)  # (P, K, 13)
             converged = solution.status.converged
@@ -516,7 +518,9 @@ class SpatialContactModel:
         with torch.enable_grad():
             delta = x.new_zeros(P, K, D, D).requires_grad_()
             moved = SE3.retract(x[:, None, None, :].expand(P, K, D, STATE_DIM), delta)
-            assembled = self._problem(moved.reshape(-1, STATE_DIM), control.expand(K * D))
+            assembled, _ = robot_contact_problem(
+                self.scene, moved.reshape(-1, STATE_DIM), control.expand(K * D)
+            )
             problem_d = _select_slots(assembled, slots).reshape(P, K, D)
             v_next = solve_mode_unchecked(
                 problem_d, modes.unsqueeze(2).expand(P, K, D, -1), initial_impulses=start
@@ -544,27 +548,6 @@ class SpatialContactModel:
         problem = _with_phi(problem, closed)
         solution = solve_mode_unchecked(problem, modes)
         return is_consistent(problem, solution, atol=self.consistency_tolerance)
-
-    def _problem(self, x: Tensor, control: _Control) -> ContactProblem:
-        """The contact problem ``(P,)`` of flat states ``x (P, 13)`` under ``control``."""
-        P = x.shape[0]
-        state = SceneState(
-            q=x[:, None, :7],
-            v=x[:, None, 7:],
-            q_kinematic=control.q_kinematic.to(x.dtype),
-            mode=torch.zeros(P, self.scene.num_slots, dtype=torch.long, device=x.device),
-            q_robot=control.q_robot.to(x.dtype),
-            v_robot=control.v_robot.to(x.dtype),
-            robot_base=control.robot_base.to(x.dtype),
-        )
-        problem, _ = contact_problem(
-            self.scene,
-            state,
-            control=None if control.v_kinematic is None else control.v_kinematic.to(x.dtype),
-            joint_command=control.v_robot.to(x.dtype) if self.scene.robots else None,
-            base_twist=None if control.base_twist is None else control.base_twist.to(x.dtype),
-        )
-        return problem
 
     def _advance(self, x: Tensor, v_next: Tensor) -> Tensor:
         """``(*P, 13)``: the pose integrated over the step with the twist ``v_next (*P, 6)``
@@ -619,7 +602,7 @@ class SpatialContactModel:
             )
         batch = torch.broadcast_shapes(pose.shape[:-1], readings.shape[:-1])
         P = math.prod(batch)
-        ctrl = self._control(control, batch)
+        ctrl = check_control(self.scene, control, batch, device=self.device)
         x = torch.cat(
             [pose.to(torch.float64).expand(*batch, 7).reshape(P, 7), pose.new_zeros(P, 6).double()],
             dim=-1,
@@ -716,78 +699,6 @@ class SpatialContactModel:
         origin = (turn @ transform[:, :3, 3:]).squeeze(-1) + base[:, :3]
         return origin, turn @ transform[:, :3, :3]
 
-    def _control(
-        self, control: RobotControl | None, batch: torch.Size, dtype: torch.dtype = torch.float64
-    ) -> _Control:
-        """The control checked and broadcast to the flat batch ``(prod(batch),)``."""
-        scene = self.scene
-        Nj, R, Nk = scene.num_robot_joints, len(scene.robots), len(scene.kinematic)
-        P = math.prod(batch)
-        device = self.device
-        if control is None:
-            if Nj or Nk:
-                raise ValueError("control: required, the scene has robots or kinematic bodies")
-            control = RobotControl(
-                q_robot=torch.zeros(0, dtype=dtype), v_robot=torch.zeros(0, dtype=dtype)
-            )
-        if not isinstance(control, RobotControl):
-            raise ValueError(f"control: expected a RobotControl, got {type(control).__name__}")
-        bases = [member.base_pose for member in scene.robots]
-        default_base = (
-            torch.stack([b for b in bases if b is not None]) if R else torch.zeros(0, 7)
-        ).to(dtype=dtype, device=device)
-        fields: dict[str, tuple[Tensor | None, tuple[int, ...], bool]] = {
-            "q_robot": (control.q_robot, (Nj,), True),
-            "v_robot": (control.v_robot, (Nj,), True),
-            "robot_base": (control.robot_base, (R, 7), False),
-            "base_twist": (control.base_twist, (R, 6), False),
-            "q_kinematic": (control.q_kinematic, (Nk, 7), Nk > 0),
-            "v_kinematic": (control.v_kinematic, (Nk, 6), False),
-        }
-        out: dict[str, Tensor | None] = {}
-        for name, (value, event, required) in fields.items():
-            if value is None:
-                if required:
-                    raise ValueError(f"control.{name}: required for this scene")
-                out[name] = None
-                continue
-            if (
-                not isinstance(value, Tensor)
-                or not value.is_floating_point()
-                or tuple(value.shape[value.ndim - len(event) :]) != event
-                or value.ndim < len(event)
-            ):
-                raise ValueError(
-                    f"control.{name}: expected a floating (*B, {', '.join(map(str, event))}) "
-                    f"tensor, got {describe(value)}"
-                )
-            if not bool(torch.isfinite(value).all()):
-                raise ValueError(f"control.{name}: contains NaN or inf")
-            try:
-                out[name] = value.to(dtype).expand(*batch, *event).reshape(P, *event)
-            except RuntimeError as err:
-                raise ValueError(
-                    f"control.{name}: batch {tuple(value.shape[: value.ndim - len(event)])} "
-                    f"does not broadcast to {tuple(batch)}"
-                ) from err
-        robot_base = out["robot_base"]
-        if robot_base is None:
-            robot_base = default_base.expand(P, R, 7)
-        q_kinematic = out["q_kinematic"]
-        if q_kinematic is None:
-            q_kinematic = torch.zeros(P, 0, 7, dtype=dtype, device=device)
-        q_robot, v_robot = out["q_robot"], out["v_robot"]
-        assert q_robot is not None
-        assert v_robot is not None
-        return _Control(
-            q_robot=q_robot,
-            v_robot=v_robot,
-            robot_base=robot_base,
-            base_twist=out["base_twist"],
-            q_kinematic=q_kinematic,
-            v_kinematic=out["v_kinematic"],
-        )
-
 
 def _select_slots(problem: ContactProblem, slots: Tensor) -> ContactProblem:
     """The problem ``(*B,)`` restricted to ``slots (S_a,)``."""
@@ -837,3 +748,103 @@ def _check_state(x: object) -> None:
     norm = torch.linalg.vector_norm(x[..., 3:7], dim=-1)
     if bool(((norm - 1).abs() > 1e-6).any()):
         raise ValueError("x: the quaternion x[..., 3:7] must have unit norm")
+
+
+def robot_contact_problem(
+    scene: Scene, x: Tensor, control: _Control
+) -> tuple[ContactProblem, SlotGeometry]:
+    """The contact problem ``(P,)`` of the tracked body's flat states ``x (P, 13)`` in
+    ``scene`` under ``control``, and its slot geometry (unclamped gaps)."""
+    P = x.shape[0]
+    state = SceneState(
+        q=x[:, None, :7],
+        v=x[:, None, 7:],
+        q_kinematic=control.q_kinematic.to(x.dtype),
+        mode=torch.zeros(P, scene.num_slots, dtype=torch.long, device=x.device),
+        q_robot=control.q_robot.to(x.dtype),
+        v_robot=control.v_robot.to(x.dtype),
+        robot_base=control.robot_base.to(x.dtype),
+    )
+    return contact_problem(
+        scene,
+        state,
+        control=None if control.v_kinematic is None else control.v_kinematic.to(x.dtype),
+        joint_command=control.v_robot.to(x.dtype) if scene.robots else None,
+        base_twist=None if control.base_twist is None else control.base_twist.to(x.dtype),
+    )
+
+
+def check_control(
+    scene: Scene,
+    control: RobotControl | None,
+    batch: torch.Size,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | None = None,
+) -> _Control:
+    """A :class:`RobotControl` of ``scene`` checked and broadcast to the flat batch
+    ``(prod(batch),)``, in ``dtype`` (``ValueError`` naming the field at fault)."""
+    Nj, R, Nk = scene.num_robot_joints, len(scene.robots), len(scene.kinematic)
+    P = math.prod(batch)
+    if control is None:
+        if Nj or Nk:
+            raise ValueError("control: required, the scene has robots or kinematic bodies")
+        control = RobotControl(
+            q_robot=torch.zeros(0, dtype=dtype), v_robot=torch.zeros(0, dtype=dtype)
+        )
+    if not isinstance(control, RobotControl):
+        raise ValueError(f"control: expected a RobotControl, got {type(control).__name__}")
+    bases = [member.base_pose for member in scene.robots]
+    default_base = (
+        torch.stack([b for b in bases if b is not None]) if R else torch.zeros(0, 7)
+    ).to(dtype=dtype, device=device)
+    fields: dict[str, tuple[Tensor | None, tuple[int, ...], bool]] = {
+        "q_robot": (control.q_robot, (Nj,), True),
+        "v_robot": (control.v_robot, (Nj,), True),
+        "robot_base": (control.robot_base, (R, 7), False),
+        "base_twist": (control.base_twist, (R, 6), False),
+        "q_kinematic": (control.q_kinematic, (Nk, 7), Nk > 0),
+        "v_kinematic": (control.v_kinematic, (Nk, 6), False),
+    }
+    out: dict[str, Tensor | None] = {}
+    for name, (value, event, required) in fields.items():
+        if value is None:
+            if required:
+                raise ValueError(f"control.{name}: required for this scene")
+            out[name] = None
+            continue
+        if (
+            not isinstance(value, Tensor)
+            or not value.is_floating_point()
+            or tuple(value.shape[value.ndim - len(event) :]) != event
+            or value.ndim < len(event)
+        ):
+            raise ValueError(
+                f"control.{name}: expected a floating (*B, {', '.join(map(str, event))}) "
+                f"tensor, got {describe(value)}"
+            )
+        if not bool(torch.isfinite(value).all()):
+            raise ValueError(f"control.{name}: contains NaN or inf")
+        try:
+            out[name] = value.to(dtype).expand(*batch, *event).reshape(P, *event)
+        except RuntimeError as err:
+            raise ValueError(
+                f"control.{name}: batch {tuple(value.shape[: value.ndim - len(event)])} "
+                f"does not broadcast to {tuple(batch)}"
+            ) from err
+    robot_base = out["robot_base"]
+    if robot_base is None:
+        robot_base = default_base.expand(P, R, 7)
+    q_kinematic = out["q_kinematic"]
+    if q_kinematic is None:
+        q_kinematic = torch.zeros(P, 0, 7, dtype=dtype, device=device)
+    q_robot, v_robot = out["q_robot"], out["v_robot"]
+    assert q_robot is not None
+    assert v_robot is not None
+    return _Control(
+        q_robot=q_robot,
+        v_robot=v_robot,
+        robot_base=robot_base,
+        base_twist=out["base_twist"],
+        q_kinematic=q_kinematic,
+        v_kinematic=out["v_kinematic"],
+    )
