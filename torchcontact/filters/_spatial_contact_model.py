@@ -493,28 +493,10 @@ class SpatialContactModel:
         P, K, D = x.shape[0], self.num_modes, TANGENT_DIM
         slots = self._acting_slots.to(x.device)
         modes = self.modes.to(x.device).index_select(1, slots).expand(P, K, -1)
-        with torch.no_grad():
-            problem = _per_mode(
-                _select_slots(robot_contact_problem(self.scene, x, control)[0], slots), K
-            )
-            solution = solve_mode_unchecked(problem, modes)
-            f = self._advance(x.unsqueeze(1), solution.v_next)  # (P, K, 13)
-            converged = solution.status.converged
-            consistent = torch.ones_like(converged)
-            if self.inconsistency_penalty > 0:
-                consistent = self._consistent(problem, modes)
-        if chart_mode is None:
-            chart = f
-        else:
-            chart = f.gather(1, chart_mode.to(x.device)[:, None, None].expand(P, 1, STATE_DIM))
-        # The derivative along the 12 tangent directions, by reverse-mode differentiation
-        # (faster here than forward mode) of a batch of P·K·12 steps warm-started at the
-        # converged impulses (see the class docstring): replica (p, k, i) yields row i of
-        # mode k's Jacobian at point p.
-        start = (
-            solution.pn.unsqueeze(2).expand(P, K, D, -1),
-            solution.pt.unsqueeze(2).expand(P, K, D, *solution.pt.shape[-2:]),
-        )
+        # One assembly: a batch of P·K·12 points retract(x, δ), δ = 0 requiring grad, whose
+        # values are the problems at x (in every mode) and whose derivatives along δ are
+        # taken by reverse-mode differentiation (faster here than forward mode): replica
+        # (p, k, i) yields row i of mode k's Jacobian at point p.
         with torch.enable_grad():
             delta = x.new_zeros(P, K, D, D).requires_grad_()
             moved = SE3.retract(x[:, None, None, :].expand(P, K, D, STATE_DIM), delta)
@@ -522,6 +504,31 @@ class SpatialContactModel:
                 self.scene, moved.reshape(-1, STATE_DIM), control.expand(K * D)
             )
             problem_d = _select_slots(assembled, slots).reshape(P, K, D)
+        with torch.no_grad():
+            problem = problem_d.map_tensors(lambda t: t[:, :, 0].detach())  # (P, K) at x
+            if self.inconsistency_penalty > 0:
+                # The step and the consistency check's (gaps closed) in one solve.
+                closed = self._closed_gaps(problem, modes)
+                both = solve_mode_unchecked(_stack(problem, closed), torch.stack([modes, modes]))
+                solution = both.map_tensors(lambda t: t[0])
+                consistent = is_consistent(
+                    closed, both.map_tensors(lambda t: t[1]), atol=self.consistency_tolerance
+                )
+            else:
+                solution = solve_mode_unchecked(problem, modes)
+                consistent = torch.ones_like(solution.status.converged)
+            f = self._advance(x.unsqueeze(1), solution.v_next)  # (P, K, 13)
+            converged = solution.status.converged
+        if chart_mode is None:
+            chart = f
+        else:
+            chart = f.gather(1, chart_mode.to(x.device)[:, None, None].expand(P, 1, STATE_DIM))
+        # The mode solves warm-started at the converged impulses (see the class docstring).
+        start = (
+            solution.pn.unsqueeze(2).expand(P, K, D, -1),
+            solution.pt.unsqueeze(2).expand(P, K, D, *solution.pt.shape[-2:]),
+        )
+        with torch.enable_grad():
             v_next = solve_mode_unchecked(
                 problem_d, modes.unsqueeze(2).expand(P, K, D, -1), initial_impulses=start
             ).v_next
@@ -538,16 +545,12 @@ class SpatialContactModel:
         f = torch.where(converged[..., None], f, x.unsqueeze(1))
         return _Linearization(F=F, f=f, c=c, converged=converged, consistent=consistent)
 
-    def _consistent(self, problem: ContactProblem, modes: Tensor) -> Tensor:
-        """``(*B,)`` bool: the mode's step is consistent with it once its contacts' gaps are
-        closed up to ``consistency_gap`` (see the class docstring), on the slots that some
-        mode activates (a slot that none does would make every mode inconsistent alike)."""
-        gap = self.consistency_gap
-        phi = problem.phi
-        closed = torch.where(modes >= 1, phi - phi.clamp(-gap, gap), phi)
-        problem = _with_phi(problem, closed)
-        solution = solve_mode_unchecked(problem, modes)
-        return is_consistent(problem, solution, atol=self.consistency_tolerance)
+    def _closed_gaps(self, problem: ContactProblem, modes: Tensor) -> ContactProblem:
+        """The problem of the consistency check: the gaps of the mode's contacts closed up to
+        ``consistency_gap`` (see the class docstring). It runs on the slots that some mode
+        activates (a slot that none does would make every mode inconsistent alike)."""
+        gap, phi = self.consistency_gap, problem.phi
+        return _with_phi(problem, torch.where(modes >= 1, phi - phi.clamp(-gap, gap), phi))
 
     def _advance(self, x: Tensor, v_next: Tensor) -> Tensor:
         """``(*P, 13)``: the pose integrated over the step with the twist ``v_next (*P, 6)``
@@ -720,6 +723,15 @@ def _select_slots(problem: ContactProblem, slots: Tensor) -> ContactProblem:
 def _per_mode(problem: ContactProblem, K: int) -> ContactProblem:
     """A problem ``(P,)`` repeated for ``K`` modes: ``(P, K)`` (views)."""
     return problem.map_tensors(lambda t: t.unsqueeze(1).expand(t.shape[0], K, *t.shape[1:]))
+
+
+def _stack(first: ContactProblem, second: ContactProblem) -> ContactProblem:
+    """Two problems of batch ``*B`` as one of batch ``(2, *B)``."""
+    names = ("M", "v", "f", "Jn", "Jt", "phi", "mu", "mask", "bn", "bt")
+    a = {name: getattr(first, name) for name in names}
+    b = {name: getattr(second, name) for name in names}
+    stacked = {name: torch.stack([a[name], b[name].expand_as(a[name])]) for name in names}
+    return ContactProblem.unchecked(h=first.h, **stacked)
 
 
 def _with_phi(problem: ContactProblem, phi: Tensor) -> ContactProblem:
