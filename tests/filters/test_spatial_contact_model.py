@@ -233,7 +233,8 @@ def free_flight(x: Tensor) -> Tensor:
 
 def test_one_mode_without_contact_is_the_se3_ekf() -> None:
     """One mode (every slot separated), a cube in free flight far above the table: every
-    particle of the RBPF is the EKF on SE(3), and the evidence its log-likelihoods."""
+    particle of the RBPF is the EKF on SE(3), and the evidence its log-likelihoods, through
+    an occluded step (NaN) and a position-only one (mask)."""
     scene = hand_scene(height=1.0, cube=True)
     modes = torch.zeros(1, scene.num_slots, dtype=torch.long)
     model = model_of(scene, modes)
@@ -253,17 +254,20 @@ def test_one_mode_without_contact_is_the_se3_ekf() -> None:
     reference, log_evidence = prior, torch.zeros((), dtype=DT)
     g = torch.Generator().manual_seed(0)
     nan = torch.full((7,), math.nan, dtype=DT)
-    for t in range(4):
+    position_only = torch.tensor([True] * 3 + [False] * 3)
+    for t in range(5):
         truth = free_flight(reference.mean)
         noise = 0.01 * torch.randn(6, generator=g, dtype=DT)
         y = nan if t == 2 else SE3.retract(truth[:7], noise)  # occluded at t = 2
-        belief = rbpf.step(belief, y, control=control)
+        mask = position_only if t == 3 else None  # the orientation unknown at t = 3
+        belief = rbpf.step(belief, y, control=control, mask=mask)
         reference = ekf_predict(reference, free_flight, Q=model.Q, manifold=SE3)
         reference, log_lik = ekf_update(
             reference,
             y,
             lambda x: x[:7],
             R=model.R,
+            mask=mask,
             manifold=SE3,
             measurement_manifold=SE3,
         )
@@ -502,3 +506,65 @@ def test_projection_lifts_a_box_out_of_the_table() -> None:
     # Nothing penetrates: the belief comes back unchanged.
     above = RBPF(model, 2).init(Gaussian(state((0.0, 0.0, 0.2)), p * torch.eye(12, dtype=DT)))
     assert project_out_of_contact(above, scene, gap_sigma=sigma, control=control) is above
+
+
+def test_from_rollout_counts_the_visited_modes() -> None:
+    """Boxes dropped onto the table: the table is the distinct mode vectors the simulator
+    visited (counted here with a Python set), the first-mode distribution and the
+    transitions their smoothed frequencies."""
+    scene = hand_scene(height=0.6)
+    simulator = Simulator(scene)
+    q = torch.tensor(
+        [
+            [[0.0, 0.0, HALF[2] + 0.002, 1.0, 0.0, 0.0, 0.0]],
+            [[0.1, 0.0, HALF[2], 1.0, 0.0, 0.0, 0.0]],
+        ],
+        dtype=DT,
+    )
+    v = torch.tensor([[[0.0, 0.0, 0.0, 0.0, 0.0, 0.0]], [[0.3, 0.0, 0.0, 0.0, 0.0, 0.0]]], dtype=DT)
+    start = simulator.initial_state(q=q, v=v, q_robot=torch.zeros(2, 4, dtype=DT))
+    rollout = simulator.rollout(start, steps=6)
+    seen = {tuple(m.tolist()) for m in rollout.mode.reshape(-1, scene.num_slots)}
+    smoothing = 0.1
+    model = SpatialContactModel.from_rollout(
+        scene,
+        rollout,
+        Q=1e-8 * torch.eye(12, dtype=DT),
+        R=1e-4 * torch.eye(6, dtype=DT),
+        smoothing=smoothing,
+    )
+    assert {tuple(m.tolist()) for m in model.modes} == seen
+    assert model.num_modes == len(seen) >= 2
+    K = model.num_modes
+    rows = {tuple(m.tolist()): k for k, m in enumerate(model.modes)}
+    first = [rows[tuple(m.tolist())] for m in rollout.mode[0]]
+    expected = torch.full((K,), smoothing, dtype=DT)
+    for k in first:
+        expected[k] += 1
+    torch.testing.assert_close(model.initial, expected / expected.sum(), rtol=1e-12, atol=0.0)
+    counts = torch.full((K, K), smoothing, dtype=DT)
+    for b in range(2):
+        path = [rows[tuple(m.tolist())] for m in rollout.mode[:, b]]
+        for i, j in itertools.pairwise(path):
+            counts[i, j] += 1
+    torch.testing.assert_close(
+        model.transition, counts / counts.sum(-1, keepdim=True), rtol=1e-12, atol=0.0
+    )
+
+
+def test_bad_filter_inputs_name_the_argument() -> None:
+    """The RBPF on SE(3): a prior with an ambient (13, 13) covariance, a camera pose of six
+    numbers, a mask over the seven ambient components."""
+    scene = hand_scene(height=1.0)
+    model = model_of(scene, torch.zeros(1, scene.num_slots, dtype=torch.long))
+    rbpf = RBPF(model, 2)
+    x = state((0.0, 0.0, 0.5))
+    with pytest.raises(ValueError, match="prior"):
+        rbpf.init(Gaussian(x, torch.eye(13, dtype=DT)))
+    belief = rbpf.init(Gaussian(x, 1e-4 * torch.eye(12, dtype=DT)))
+    zeros = torch.zeros(4, dtype=DT)
+    control = RobotControl(q_robot=zeros, v_robot=zeros)
+    with pytest.raises(ValueError, match="y"):
+        rbpf.step(belief, x[:6], control=control)
+    with pytest.raises(ValueError, match="mask"):
+        rbpf.step(belief, x[:7], control=control, mask=torch.ones(7, dtype=torch.bool))

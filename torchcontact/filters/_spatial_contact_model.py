@@ -610,16 +610,7 @@ class SpatialContactModel:
             [pose.to(torch.float64).expand(*batch, 7).reshape(P, 7), pose.new_zeros(P, 6).double()],
             dim=-1,
         )
-        state = SceneState(
-            q=x[:, None, :7],
-            v=x[:, None, 7:],
-            q_kinematic=ctrl.q_kinematic,
-            mode=torch.zeros(P, self.scene.num_slots, dtype=torch.long, device=x.device),
-            q_robot=ctrl.q_robot,
-            v_robot=ctrl.v_robot,
-            robot_base=ctrl.robot_base,
-        )
-        _, geometry = contact_problem(self.scene, state)
+        _, geometry = robot_contact_problem(self.scene, x, ctrl)
         acting, which = self._acting_sets  # (U, S), (K,)
         U = acting.shape[0]
         log_lik = x.new_zeros(P, U)
