@@ -20,7 +20,7 @@ from torchcontact.contact import (
     solve_mode_unchecked,
 )
 from torchcontact.filters._contact_model import collect_modes, empirical_transition
-from torchcontact.filters._manifold import SE3
+from torchcontact.filters._manifold import SE3, Manifold
 from torchcontact.filters._mode_gate import check_gate, gate_log_weight
 from torchcontact.filters._rbpf_belief import RBPFBelief
 from torchcontact.filters._switching import LinearSwitchingModel, ModeDynamics
@@ -357,12 +357,12 @@ class SpatialContactModel:
         return OBS_DIM
 
     @property
-    def manifold(self) -> Any:
+    def manifold(self) -> Manifold:
         """:data:`~torchcontact.filters.SE3`: the state's manifold (12-dim tangent)."""
         return SE3
 
     @property
-    def measurement_manifold(self) -> Any:
+    def measurement_manifold(self) -> Manifold:
         """:data:`~torchcontact.filters.SE3`: the camera pose's manifold (6-dim tangent)."""
         return SE3
 
