@@ -41,7 +41,7 @@ from torch import Tensor
 from torchcontact._checks import check_int, check_real
 from torchcontact.geometry import Box, HalfSpace, quat_exp, quat_mul, quat_to_matrix
 from torchcontact.robots import Robot, load
-from torchcontact.sim import UNSOLVED, Body, Rollout, RobotMember, Scene, Simulator
+from torchcontact.sim import UNSOLVED, Body, RobotMember, Rollout, Scene, Simulator
 from torchcontact.states import ContactSet, TactileArray
 
 F64 = torch.float64
@@ -221,7 +221,9 @@ def palm_ik(robot: Robot, position: Tensor, start: Tensor, *, iterations: int = 
         transform = robot.forward_kinematics(q, "bhand_palm")
         turn = target @ transform[:3, :3].T
         angle = torch.acos(((turn.diagonal().sum() - 1) / 2).clamp(-1.0, 1.0))
-        axis = torch.stack([turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1]])
+        axis = torch.stack(
+            [turn[2, 1] - turn[1, 2], turn[0, 2] - turn[2, 0], turn[1, 0] - turn[0, 1]]
+        )
         scale = 0.5 if float(angle) < 1e-9 else float(angle) / (2 * math.sin(float(angle)))
         residual = torch.cat([position - transform[:3, 3], scale * axis])
         error = float(residual.norm())
@@ -362,7 +364,9 @@ def pad_triggers(
             for k in range(group.start, group.start + group.count)
         ]
         rotation = base_rotation @ transforms[link][..., :3, :3]  # link to world
-        origin = (base_rotation @ transforms[link][..., :3, 3:]).squeeze(-1) + robot_base[..., 0, :3]
+        origin = (base_rotation @ transforms[link][..., :3, 3:]).squeeze(-1) + robot_base[
+            ..., 0, :3
+        ]
         local = (points[..., slots, :] - origin[..., None, :]) @ rotation
         local_normals = normals[..., slots, :] @ rotation
         contacts = ContactSet(
@@ -486,7 +490,9 @@ def box_trials(settings: BarrettBoxGrasp, *, seed: int | None = None) -> BoxTria
     frictions = uniform(settings.friction, B)
     for g, start in enumerate(range(0, B, per)):
         n = min(per, B - start)
-        half = torch.stack([uniform(getattr(settings, k), 1)[0] for k in ("half_x", "half_y", "half_z")])
+        half = torch.stack(
+            [uniform(getattr(settings, k), 1)[0] for k in ("half_x", "half_y", "half_z")]
+        )
         mass = float(uniform(settings.mass, 1))
         friction = frictions[start : start + n]
         scene = box_scene(tuple(half.tolist()), mass, friction, member)  # type: ignore[arg-type]
@@ -519,7 +525,9 @@ def box_trials(settings: BarrettBoxGrasp, *, seed: int | None = None) -> BoxTria
     std = settings.camera_std()
     pose = truth.q[1:, :, 0]
     noise = std * torch.randn(T, B, 6, generator=gen, dtype=F64)
-    y = torch.cat([pose[..., :3] + noise[..., :3], quat_mul(quat_exp(noise[..., 3:]), pose[..., 3:])], -1)
+    y = torch.cat(
+        [pose[..., :3] + noise[..., :3], quat_mul(quat_exp(noise[..., 3:]), pose[..., 3:])], -1
+    )
     y[occluded] = math.nan
     pads = hand_pads(settings, robot)
     assert truth.q_robot is not None and truth.robot_base is not None
@@ -534,7 +542,10 @@ def box_trials(settings: BarrettBoxGrasp, *, seed: int | None = None) -> BoxTria
         mode=truth.mode,
         active=truth.active,
     )
-    probability = torch.cat([pad.reading_probability(triggers[..., i : i + 1]) for i, pad in enumerate(pads.values())], -1)
+    probability = torch.cat(
+        [pad.reading_probability(triggers[..., i : i + 1]) for i, pad in enumerate(pads.values())],
+        -1,
+    )
     readings = torch.rand(probability.shape, generator=gen, dtype=F64) < probability
     return BoxTrials(
         truth=truth,
