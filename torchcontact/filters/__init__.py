@@ -43,6 +43,7 @@ from torchcontact.filters._simulator_pf import (
     SimulatorPFBelief,
 )
 from torchcontact.filters._smoother import rts_smooth
+from torchcontact.filters._spatial_contact_model import RobotControl, SpatialContactModel
 from torchcontact.filters._switching import LinearSwitchingModel, ModeDynamics
 from torchcontact.geometry import quat_exp, quat_log, wrap_angle
 
@@ -65,10 +66,12 @@ __all__ = [
     "Proposal",
     "RBPFBelief",
     "ResamplingMethod",
+    "RobotControl",
     "SE2Pose",
     "SE3Pose",
     "SimulatorPFBelief",
     "SimulatorParticleFilter",
+    "SpatialContactModel",
     "SwitchingModel",
     "collect_modes",
     "effective_sample_size",

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Any
@@ -10,9 +9,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcontact._checks import FLOAT_DTYPES, check_real, describe
+from torchcontact._checks import FLOAT_DTYPES, describe
 from torchcontact.contact import solve_mode
 from torchcontact.filters._compiled import kernel
+from torchcontact.filters._mode_gate import check_gate, gate_log_weight
 from torchcontact.filters._planar_linearization import ModeTable, linearize_modes, mode_table
 from torchcontact.filters._planar_slots import SlotLayout, slot_layout
 from torchcontact.filters._rbpf_belief import RBPFBelief
@@ -47,16 +47,12 @@ class _ConstantDynamics:
         H: ``(K, 3, 6)`` vision's measurement matrix.
         d: ``(K, 3)`` zero measurement offset.
         R: ``(K, 3, 3)`` vision noise.
-        consistent: ``()`` log-weight 0 of a consistent mode.
-        inconsistent: ``()`` log-weight ``-inconsistency_penalty`` of an inconsistent one.
     """
 
     Q: Tensor
     H: Tensor
     d: Tensor
     R: Tensor
-    consistent: Tensor
-    inconsistent: Tensor
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
@@ -169,17 +165,10 @@ class PlanarContactModel:
             )
         if bool(((modes < 0) | (modes >= PLANAR_MODES)).any()):
             raise ValueError(f"modes: values must lie in [0, {PLANAR_MODES})")
-        penalty = self.inconsistency_penalty
-        if penalty != math.inf:  # inf rules inconsistent modes out
-            check_real("inconsistency_penalty", penalty, low=0.0)
-        check_real("consistency_gap", self.consistency_gap, low=0.0)
-        check_real(
-            "consistency_tolerance",
-            self.consistency_tolerance,
-            low=0.0,
-            high=1.0,
-            low_open=True,
-            high_open=True,
+        check_gate(
+            penalty=self.inconsistency_penalty,
+            tolerance=self.consistency_tolerance,
+            gap=self.consistency_gap,
         )
         if not isinstance(self.compiled, bool):
             raise ValueError(f"compiled: expected a bool, got {self.compiled!r}")
@@ -310,7 +299,9 @@ class PlanarContactModel:
         noise = self._noise
         log_weight = None
         if self.inconsistency_penalty > 0:
-            log_weight = torch.where(consistent, noise.consistent, noise.inconsistent)
+            log_weight = gate_log_weight(
+                consistent, penalty=self.inconsistency_penalty, dtype=self.dtype
+            )
         return ModeDynamics(
             mode_log_weight=log_weight,
             F=F,
@@ -510,14 +501,12 @@ class PlanarContactModel:
     @cached_property
     def _noise(self) -> _ConstantDynamics:
         """The parts of :meth:`mode_dynamics` that do not change, built at its first use."""
-        K, penalty = self.num_modes, -self.inconsistency_penalty
+        K = self.num_modes
         return _ConstantDynamics(
             Q=self.Q.expand(K, STATE_DIM, STATE_DIM),
             H=self._H(),
             d=self.Q.new_zeros(OBS_DIM).expand(K, OBS_DIM),
             R=self.R.expand(K, OBS_DIM, OBS_DIM),
-            consistent=self.Q.new_zeros(()),
-            inconsistent=torch.tensor(penalty, dtype=self.dtype, device=self.device),
         )
 
     @cached_property

@@ -183,6 +183,18 @@ class ModeDynamics:
             row of the model's transition matrix that particle ``i``'s mode would select: for
             a model whose mode transition depends on each particle's continuous state (e.g. a
             manipulation graph over pose cells × contact states).
+        origin: ``(*B', n)`` for a model on a manifold (its ``manifold`` attribute, e.g.
+            :data:`~torchcontact.filters.SE3`): the point in whose tangent the dynamics read
+            the particles' states, :math:`\delta_i = \mathrm{local}(\mathrm{origin}, \mu_i)`
+            (their covariances are taken as they are, first order). ``F, c, Q`` then act on
+            ``d``-dim tangent vectors, and the predicted mean is
+            :math:`\mathrm{retract}(\mathrm{chart}, F_k \delta_i + c_k)`.
+        chart: ``(*B', n)``: the point in whose tangent the dynamics predict and the
+            measurement reads the state (required with ``origin``).
+        measurement_chart: ``(*B', m)`` for a model whose measurement lies on a manifold (its
+            ``measurement_manifold`` attribute): the measurement enters the update as
+            :math:`\mathrm{local}(\mathrm{measurement\_chart}, y)`, a vector of the
+            measurement's tangent dimension that ``H, d, R`` describe.
     """
 
     F: Tensor
@@ -193,6 +205,9 @@ class ModeDynamics:
     R: Tensor
     mode_log_weight: Tensor | None = None
     transition_rows: Tensor | None = None
+    origin: Tensor | None = None
+    chart: Tensor | None = None
+    measurement_chart: Tensor | None = None
 
 
 def _shape_matches(shape: torch.Size, expected: tuple[int, ...]) -> bool:

@@ -1,0 +1,51 @@
+"""The contact models' gate on modes: log-weights of modes that contradict themselves at the
+linearization point (shared by :class:`~torchcontact.filters.PlanarContactModel` and
+:class:`~torchcontact.filters.SpatialContactModel`)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import Tensor
+
+from torchcontact._checks import check_real
+
+
+def check_gate(*, penalty: float, tolerance: float, gap: float) -> None:
+    """Validate a contact model's gate settings.
+
+    Args:
+        penalty: ``inconsistency_penalty``, nats, ``>= 0`` or ``inf``.
+        tolerance: ``consistency_tolerance``, in ``(0, 1)``.
+        gap: ``consistency_gap``, metres, ``>= 0``.
+
+    Raises:
+        ValueError: naming the field at fault.
+    """
+    if penalty != math.inf:  # inf rules inconsistent modes out
+        check_real("inconsistency_penalty", penalty, low=0.0)
+    check_real("consistency_gap", gap, low=0.0)
+    check_real("consistency_tolerance", tolerance, low=0.0, high=1.0, low_open=True, high_open=True)
+
+
+def gate_log_weight(
+    consistent: Tensor, *, penalty: float, dtype: torch.dtype, converged: Tensor | None = None
+) -> Tensor:
+    """Per-mode log-weights of a step: ``0`` for a consistent mode, ``-penalty`` for an
+    inconsistent one, ``-inf`` for one whose equalities could not be solved.
+
+    Args:
+        consistent: ``(*B, K)`` bool, the consistency check's verdict.
+        penalty: ``inconsistency_penalty`` (nats; ``inf`` rules inconsistent modes out).
+        dtype: the log-weights' dtype.
+        converged: ``(*B, K)`` bool, the mode's equalities were solved, or None (all were).
+
+    Returns:
+        ``(*B, K)`` log-weights (``ModeDynamics.mode_log_weight``).
+    """
+    weight = torch.full(consistent.shape, -penalty, dtype=dtype, device=consistent.device)
+    weight = weight.masked_fill(consistent, 0.0)
+    if converged is not None:
+        weight = weight.masked_fill(~converged, -math.inf)
+    return weight

@@ -1,0 +1,797 @@
+"""The spatial contact model as a switching model: a box's pose and twist on SE(3), its contact
+modes against a table and a kinematic robot, linearized per mode in the tangent space."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor
+from torch.autograd import forward_ad
+
+from torchcontact._checks import FLOAT_DTYPES, describe
+from torchcontact.contact import (
+    ContactProblem,
+    is_consistent,
+    num_modes,
+    solve_mode,
+    solve_mode_unchecked,
+)
+from torchcontact.filters._contact_model import collect_modes, empirical_transition
+from torchcontact.filters._manifold import SE3
+from torchcontact.filters._mode_gate import check_gate, gate_log_weight
+from torchcontact.filters._rbpf_belief import RBPFBelief
+from torchcontact.filters._switching import LinearSwitchingModel, ModeDynamics
+from torchcontact.geometry import quat_to_matrix
+from torchcontact.sim import Rollout, Scene, SceneState, contact_problem, integrate_poses
+from torchcontact.states import ContactSet, PartnerKind, TactileArray
+
+STATE_DIM = 13  # position, quaternion (w, x, y, z), linear and angular velocity
+TANGENT_DIM = 12  # (δp, δθ, δv, δω)
+OBS_DIM = 7  # the camera's pose: position and quaternion
+OBS_TANGENT_DIM = 6  # its residual (δp, δθ)
+
+
+@dataclass(frozen=True, eq=False)
+class RobotControl:
+    """The measured motion of a spatial scene's kinematic robots (and kinematic bodies) over
+    one filter step, world frame.
+
+    Attributes:
+        q_robot: ``(*B, Nj)`` joint positions at the start of the step, robots in scene order
+            (rad or m).
+        v_robot: ``(*B, Nj)`` joint velocities during the step.
+        robot_base: ``(*B, R, 7)`` the robots' base poses (position and unit quaternion
+            ``(w, x, y, z)``), or None: each member's ``base_pose``.
+        base_twist: ``(*B, R, 6)`` the bases' twists ``(v, ω)`` during the step (at the base
+            frame's origin), or None: at rest.
+        q_kinematic: ``(*B, Nk, 7)`` poses of the scene's kinematic bodies, or None (required
+            when it has some).
+        v_kinematic: ``(*B, Nk, 6)`` their twists, or None (at rest).
+    """
+
+    q_robot: Tensor
+    v_robot: Tensor
+    robot_base: Tensor | None = None
+    base_twist: Tensor | None = None
+    q_kinematic: Tensor | None = None
+    v_kinematic: Tensor | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class _Control:
+    """A :class:`RobotControl` checked and broadcast to a flat batch ``(P,)``, float64."""
+
+    q_robot: Tensor
+    v_robot: Tensor
+    robot_base: Tensor
+    base_twist: Tensor | None
+    q_kinematic: Tensor
+    v_kinematic: Tensor | None
+
+    def expand(self, repeat: int) -> _Control:
+        """Each entry repeated ``repeat`` times, consecutively: ``(P · repeat, ...)``."""
+
+        def each(t: Tensor | None) -> Tensor | None:
+            return None if t is None else t.repeat_interleave(repeat, dim=0)
+
+        q_robot, v_robot = each(self.q_robot), each(self.v_robot)
+        robot_base, q_kinematic = each(self.robot_base), each(self.q_kinematic)
+        assert q_robot is not None
+        assert v_robot is not None
+        assert robot_base is not None
+        assert q_kinematic is not None
+        return _Control(
+            q_robot=q_robot,
+            v_robot=v_robot,
+            robot_base=robot_base,
+            base_twist=each(self.base_twist),
+            q_kinematic=q_kinematic,
+            v_kinematic=each(self.v_kinematic),
+        )
+
+
+@dataclass(frozen=True, eq=False)
+class _Linearization:
+    """Every mode's step at one point, flat batch ``(P, K)``.
+
+    Attributes:
+        F: ``(P, K, 12, 12)`` tangent Jacobians (chart of each row: see ``_linearize``).
+        f: ``(P, K, 13)`` the steps ``f_k(x̄)``.
+        c: ``(P, K, 12)`` ``local(chart, f_k(x̄))`` (zero with the per-mode charts).
+        converged: ``(P, K)`` bool, the mode's equalities were solved at ``x̄``.
+        consistent: ``(P, K)`` bool, the gate's verdict (True where it is off).
+    """
+
+    F: Tensor
+    f: Tensor
+    c: Tensor
+    converged: Tensor
+    consistent: Tensor
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class SpatialContactModel:
+    r"""The one dynamic body of a spatial scene (a box on a table, grasped by a kinematic
+    robot), its contact modes, a camera and tactile pads, as a switching model for the
+    :class:`~torchcontact.filters.RBPF`, on the SE(3) manifold.
+
+    The state is the body's pose and twist, :math:`x = (p, q, v, \omega)` (13 numbers:
+    world-frame position, unit quaternion ``(w, x, y, z)`` body to world, world-frame linear
+    and angular velocity), with covariances in the 12-dim tangent space of
+    :data:`~torchcontact.filters.SE3` (error-state form: :math:`x = \mathrm{retract}(\mu,
+    \delta)`, :math:`\delta = (\delta p, \delta\theta, \delta v, \delta\omega)` with
+    :math:`\delta\theta` in the body frame). Mode :math:`k` fixes the contact mode of every
+    slot of the scene, ``modes[k]`` (box–table, then each robot collision primitive against
+    the box), and the step is the simulator's with that mode:
+
+    .. math::
+
+        f_k(x, u) = \big(p + h v^+_k,\ \mathrm{Exp}(h\,\omega^+_k) \otimes q,\ v^+_k,
+        \omega^+_k\big), \qquad
+        (v^+_k, \omega^+_k) = \mathrm{solve\_mode}(\mathrm{problem}(x, u), \mathrm{modes}[k])
+
+    where the robots are kinematic (:class:`~torchcontact.sim.RobotMember` with
+    ``mode="kinematic"``): their joint angles and velocities are the measured control
+    :math:`u` (:class:`RobotControl`) and enter the problem through its known velocity terms.
+
+    Linearization. Every mode's step is linearized at the belief's mixture mean
+    :math:`\bar x` (:meth:`RBPFBelief.mean`, a weighted Karcher mean on SE(3)), shared by
+    the particles: in tangent coordinates,
+
+    .. math::
+
+        F_k = \frac{\partial}{\partial \delta}\,
+            \mathrm{local}\big(z, f_k(\mathrm{retract}(\bar x, \delta))\big)\Big|_{\delta=0},
+        \qquad c_k = \mathrm{local}(z, f_k(\bar x)),
+
+    with :math:`z` the step of the most probable mode (every mode's prediction in one chart),
+    so that particle :math:`i` with mean :math:`\mu_i` predicts
+    :math:`\mathrm{retract}(z, F_k\, \mathrm{local}(\bar x, \mu_i) + c_k)`
+    (:class:`~torchcontact.filters.ModeDynamics` with ``origin`` :math:`\bar x` and ``chart``
+    :math:`z`). The Jacobian is exact (float64, forward-mode automatic differentiation of the
+    step through :func:`~torchcontact.sim.contact_problem` and
+    :func:`~torchcontact.contact.solve_mode`, the twelve tangent directions and all ``K``
+    modes in one batch): the mode solve is differentiated from its converged impulses
+    (``initial_impulses``), where its iterated Tikhonov iterations are a fixed point, so the
+    derivative is that of the converged system (the implicit-function derivative, whose
+    iterates converge as the solve's own), not that of a finite number of iterations from
+    zero, which differs at redundant contacts. The discrete choices of the geometry (each
+    slot's closest features, the candidate slots) are held.
+
+    Modes ruled out. A mode whose equalities contradict each other at :math:`\bar x` (its
+    ``solve_mode`` does not converge) gets the log-weight :math:`-\infty` for the step
+    (``ModeDynamics.mode_log_weight``; its ``F`` and ``c`` are placeholders, the identity
+    and the chart's origin). A mode that converges but contradicts itself (a separated slot
+    that would penetrate, friction that would reverse the slip, a contact that would pull)
+    gets ``-inconsistency_penalty``, judged by :func:`~torchcontact.contact.is_consistent`
+    with the relative tolerance ``consistency_tolerance`` after closing the gaps of the mode's
+    contacts up to ``consistency_gap``, as :class:`~torchcontact.filters.PlanarContactModel`
+    does (the shared gate).
+
+    Measurements. The camera measures the pose, :math:`y = \mathrm{retract}(p, q;\ n)`,
+    :math:`n \sim N(0, R)` in the 6-dim tangent (``y`` is ``(7,)``, NaN where occluded);
+    tactile pads on the robot's links read binary contacts
+    (:meth:`tactile_log_likelihood`, per mode, the RBPF step's ``extra_log_likelihood``).
+
+    Attributes:
+        scene: a spatial scene with exactly one dynamic body (the tracked object), static
+            bodies, kinematic bodies and kinematic robots (``RobotMember(mode="kinematic")``).
+        modes: ``(K, S)`` long table of per-slot modes (``S = scene.num_slots``; values in
+            ``[0, num_modes(D))``), e.g. from :func:`collect_modes` over simulated rollouts.
+        Q: ``(12, 12)`` or ``(K, 12, 12)`` process noise covariance of a step in the tangent,
+            symmetric PSD. Its dtype is the filter's.
+        R: ``(6, 6)`` camera noise covariance in the pose's tangent ``(δp, δθ)``, symmetric
+            positive definite.
+        transition: ``(K, K)`` row-stochastic mode transition, or ``(A, K, K)`` per action.
+        initial: ``(K,)`` distribution of the first mode; default uniform.
+        tactile: tactile pads by link name of the scene's robots, each a
+            :class:`~torchcontact.states.TactileArray` in that link's frame (``d = 3``); the
+            readings of :meth:`tactile_log_likelihood` are theirs concatenated in this order.
+        inconsistency_penalty: log-weight penalty (nats, ``>= 0``; ``inf`` rules such modes
+            out) of modes inconsistent at the linearization point; ``0`` disables the gate.
+        consistency_tolerance: relative tolerance of the consistency check.
+        consistency_gap: gaps (metres) of a mode's contacts that the check treats as closed.
+
+    Construction validates every field and raises ``ValueError`` naming the field at fault.
+    """
+
+    scene: Scene
+    modes: Tensor
+    Q: Tensor
+    R: Tensor
+    transition: Tensor
+    initial: Tensor | None = None
+    tactile: Mapping[str, TactileArray] = field(default_factory=dict)
+    inconsistency_penalty: float = 5.0
+    consistency_tolerance: float = 0.05
+    consistency_gap: float = 0.003
+
+    def __post_init__(self) -> None:
+        scene = self.scene
+        if not isinstance(scene, Scene) or scene.dimension != 3:
+            raise ValueError(f"scene: expected a spatial Scene, got {describe(scene)}")
+        if len(scene.dynamic) != 1:
+            raise ValueError(
+                f"scene: expected exactly one dynamic body (the tracked object), got "
+                f"{len(scene.dynamic)}"
+            )
+        servo = [member.name for member in scene.robots if member.servo_joints]
+        if servo:
+            raise ValueError(
+                f"scene: the filter's robots must be kinematic (RobotMember(mode='kinematic')), "
+                f"got servo joints on {servo}"
+            )
+        modes, S = self.modes, scene.num_slots
+        if (
+            not isinstance(modes, Tensor)
+            or modes.dtype != torch.long
+            or modes.ndim != 2
+            or modes.shape[1] != S
+            or modes.shape[0] < 1
+        ):
+            raise ValueError(f"modes: expected a long (K, {S}) tensor, got {describe(modes)}")
+        codes = num_modes(scene.friction_directions)
+        if bool(((modes < 0) | (modes >= codes)).any()):
+            raise ValueError(f"modes: values must lie in [0, {codes})")
+        check_gate(
+            penalty=self.inconsistency_penalty,
+            tolerance=self.consistency_tolerance,
+            gap=self.consistency_gap,
+        )
+        K = int(modes.shape[0])
+        for name, value, shapes in (
+            ("Q", self.Q, ((TANGENT_DIM, TANGENT_DIM), (K, TANGENT_DIM, TANGENT_DIM))),
+            ("R", self.R, ((OBS_TANGENT_DIM, OBS_TANGENT_DIM),)),
+        ):
+            if not isinstance(value, Tensor) or tuple(value.shape) not in shapes:
+                raise ValueError(
+                    f"{name}: expected shape {' or '.join(map(str, shapes))}, got {describe(value)}"
+                )
+            if value.dtype not in FLOAT_DTYPES:
+                raise ValueError(f"{name}: expected float32 or float64, got dtype {value.dtype}")
+        if self.initial is None:
+            uniform = torch.full((K,), 1.0 / K, dtype=self.Q.dtype, device=self.Q.device)
+            object.__setattr__(self, "initial", uniform)
+        links = {link for member in scene.robots for link in member.robot.link_names}
+        if not isinstance(self.tactile, Mapping):
+            raise ValueError(
+                f"tactile: expected a mapping link -> TactileArray, got {describe(self.tactile)}"
+            )
+        for link, pads in self.tactile.items():
+            if link not in links:
+                raise ValueError(f"tactile: {link!r} is not a link of the scene's robots")
+            if not isinstance(pads, TactileArray) or pads.dim != 3:
+                raise ValueError(
+                    f"tactile[{link!r}]: expected a spatial TactileArray, got {describe(pads)}"
+                )
+        # The remaining checks (dtypes, finiteness, PSD noise, stochastic transition and
+        # initial) are those of a linear switching model with the same noise and transition.
+        dtype, device = self.Q.dtype, self.Q.device
+        LinearSwitchingModel(
+            F=torch.zeros(K, TANGENT_DIM, TANGENT_DIM, dtype=dtype, device=device),
+            c=torch.zeros(K, TANGENT_DIM, dtype=dtype, device=device),
+            Q=self.Q.expand(K, TANGENT_DIM, TANGENT_DIM),
+            H=self._H(),
+            d=torch.zeros(K, OBS_TANGENT_DIM, dtype=dtype, device=device),
+            R=self.R.expand(K, OBS_TANGENT_DIM, OBS_TANGENT_DIM),
+            transition=self.transition,
+            initial=self.initial,  # type: ignore[arg-type]  # set above
+        )
+
+    # ------------------------------------------------------------------------------------------
+    # construction from simulated data
+
+    @classmethod
+    def from_rollout(
+        cls,
+        scene: Scene,
+        rollout: Rollout,
+        *,
+        Q: Tensor,
+        R: Tensor,
+        smoothing: float = 0.1,
+        **options: Any,
+    ) -> SpatialContactModel:
+        """The model of the modes that simulated rollouts of ``scene`` visit.
+
+        The mode table is :func:`collect_modes` of ``rollout.mode``, the transition
+        :func:`empirical_transition` of its mode ids, and the first mode's distribution the
+        ids' frequencies at the first step, with the same additive ``smoothing``. The
+        rollouts may come from a scene whose robots are servoed (the simulator's); ``scene``
+        is the filter's, with the same slots and kinematic robots.
+
+        Args:
+            scene: the filter's scene (one dynamic body, kinematic robots).
+            rollout: rollouts with ``rollout.mode`` of shape ``(T, *B, S)``.
+            Q: ``(12, 12)`` process noise covariance (or ``(K, 12, 12)``).
+            R: ``(6, 6)`` camera noise covariance.
+            smoothing: pseudo-count of the transition and first-mode estimates, ``> 0``.
+            **options: the model's other fields (``tactile``, ``inconsistency_penalty``, ...).
+
+        Raises:
+            ValueError: naming ``rollout`` if it is not a :class:`~torchcontact.sim.Rollout`
+                of at least one step, or the field at fault.
+        """
+        if not isinstance(rollout, Rollout) or rollout.mode.shape[0] == 0:
+            raise ValueError(f"rollout: expected a Rollout of >= 1 step, got {describe(rollout)}")
+        table, ids, _ = collect_modes(rollout.mode)
+        K = len(table)
+        dtype = R.dtype if isinstance(R, Tensor) else torch.float64
+        first = torch.bincount(ids[0].reshape(-1), minlength=K).to(dtype) + smoothing
+        return cls(
+            scene=scene,
+            modes=table,
+            Q=Q,
+            R=R,
+            transition=empirical_transition(ids, K, smoothing=smoothing, dtype=dtype),
+            initial=first / first.sum(),
+            **options,
+        )
+
+    # ------------------------------------------------------------------------------------------
+    # the SwitchingModel protocol
+
+    @property
+    def num_modes(self) -> int:
+        """``K``."""
+        return int(self.modes.shape[0])
+
+    @property
+    def state_dim(self) -> int:
+        """``13``: position, quaternion, twist."""
+        return STATE_DIM
+
+    @property
+    def obs_dim(self) -> int:
+        """``7``: the camera's pose."""
+        return OBS_DIM
+
+    @property
+    def manifold(self) -> Any:
+        """:data:`~torchcontact.filters.SE3`: the state's manifold (12-dim tangent)."""
+        return SE3
+
+    @property
+    def measurement_manifold(self) -> Any:
+        """:data:`~torchcontact.filters.SE3`: the camera pose's manifold (6-dim tangent)."""
+        return SE3
+
+    @property
+    def num_actions(self) -> int | None:
+        """``A`` of an action-dependent transition, else None."""
+        return int(self.transition.shape[0]) if self.transition.ndim == 3 else None
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The filter's dtype (that of ``Q``)."""
+        return self.Q.dtype
+
+    @property
+    def device(self) -> torch.device:
+        """The filter's device."""
+        return self.Q.device
+
+    @property
+    def body(self) -> str:
+        """Name of the tracked body."""
+        return self.scene.bodies[self.scene.dynamic[0]].name
+
+    def mode_dynamics(self, belief: RBPFBelief, control: RobotControl | None) -> ModeDynamics:
+        """Every mode's step linearized at the belief's mixture mean, in tangent coordinates.
+
+        Args:
+            belief: the belief at the start of the step, batch ``*B``.
+            control: a :class:`RobotControl` with batch ``*B`` (broadcastable), or None when
+                the scene has no robot and no kinematic body.
+
+        Returns:
+            The :class:`ModeDynamics` with ``F (*B, K, 12, 12)``, ``c (*B, K, 12)``, ``origin``
+            the mixture mean ``(*B, 13)``, ``chart`` the most probable mode's step ``(*B, 13)``,
+            ``measurement_chart`` its pose ``(*B, 7)``, the constant noise and camera model
+            and the modes' log-weights (see the class docstring).
+        """
+        mean = belief.mean()
+        batch = mean.shape[:-1]
+        flat = mean.reshape(-1, STATE_DIM).detach().to(torch.float64)
+        ctrl = self._control(control, batch)
+        likely = belief.mode_marginals().reshape(-1, self.num_modes).argmax(-1)
+        lin = self._linearize(flat, ctrl, chart_mode=likely)
+        K, dtype = self.num_modes, self.dtype
+        chart = lin.f.gather(1, likely[:, None, None].expand(-1, 1, STATE_DIM))[:, 0]
+        log_weight = gate_log_weight(
+            lin.consistent,
+            penalty=self.inconsistency_penalty,
+            dtype=dtype,
+            converged=lin.converged,
+        )
+        noise = self._noise
+        return ModeDynamics(
+            F=lin.F.to(dtype).reshape(*batch, K, TANGENT_DIM, TANGENT_DIM),
+            c=lin.c.to(dtype).reshape(*batch, K, TANGENT_DIM),
+            Q=noise["Q"],
+            H=noise["H"],
+            d=noise["d"],
+            R=noise["R"],
+            mode_log_weight=log_weight.reshape(*batch, K),
+            origin=mean.detach().reshape(*batch, STATE_DIM),
+            chart=chart.to(dtype).reshape(*batch, STATE_DIM),
+            measurement_chart=chart[:, :OBS_DIM].to(dtype).reshape(*batch, OBS_DIM),
+        )
+
+    # ------------------------------------------------------------------------------------------
+    # the step and its linearization
+
+    def step(self, x: Tensor, *, mode: Tensor, control: RobotControl | None = None) -> Tensor:
+        """The mode-decoupled step ``f_k(x, u)``, differentiable.
+
+        Args:
+            x: ``(*B, 13)`` pose (position, unit quaternion) and twist of the tracked body.
+            mode: ``(*B,)`` long mode ids into :attr:`modes`.
+            control: the robots' measured motion, batch broadcastable to ``*B``.
+
+        Returns:
+            ``(*B, 13)`` the state after the step (in ``x``'s dtype).
+        """
+        _check_state(x)
+        if not isinstance(mode, Tensor) or mode.dtype != torch.long:
+            raise ValueError(f"mode: expected a long (*B,) tensor, got {describe(mode)}")
+        if bool(((mode < 0) | (mode >= self.num_modes)).any()):
+            raise ValueError(f"mode: ids must lie in [0, {self.num_modes})")
+        batch = torch.broadcast_shapes(x.shape[:-1], mode.shape)
+        ctrl = self._control(control, batch, x.dtype)
+        modes = self.modes[mode.expand(batch)].reshape(-1, self.scene.num_slots)
+        flat = x.expand(*batch, STATE_DIM).reshape(-1, STATE_DIM)
+        problem = self._problem(flat, modes, ctrl)
+        v_next = solve_mode(problem, modes).v_next
+        return self._advance(flat, v_next).reshape(*batch, STATE_DIM)
+
+    def linearize(
+        self, x: Tensor, *, control: RobotControl | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Every mode's step at ``x``: ``f_k(retract(x, δ)) ≈ retract(f_k(x), F_k δ)``.
+
+        Args:
+            x: ``(*B, 13)`` linearization point (pose and twist, world frame).
+            control: the robots' measured motion, batch broadcastable to ``*B``.
+
+        Returns:
+            ``F (*B, K, 12, 12)`` (each mode's Jacobian in the tangents at ``x`` and at
+            ``f_k(x)``), ``f (*B, K, 13)`` the steps and ``(*B, K)`` bool, the mode's
+            equalities were solved (its step and Jacobian mean something); float64.
+        """
+        _check_state(x)
+        batch = x.shape[:-1]
+        ctrl = self._control(control, batch)
+        lin = self._linearize(x.reshape(-1, STATE_DIM).detach().to(torch.float64), ctrl)
+        K = self.num_modes
+        return (
+            lin.F.reshape(*batch, K, TANGENT_DIM, TANGENT_DIM),
+            lin.f.reshape(*batch, K, STATE_DIM),
+            lin.converged.reshape(*batch, K),
+        )
+
+    def _linearize(
+        self, x: Tensor, control: _Control, chart_mode: Tensor | None = None
+    ) -> _Linearization:
+        """Every mode at ``x (P, 13)`` (float64): the steps, the Jacobians and the gate.
+
+        ``chart_mode (P,)``: express every mode's step in the tangent at the step of that
+        mode (``c`` its offsets); None: each mode's in its own (``c = 0``).
+        """
+        P, K, S = x.shape[0], self.num_modes, self.scene.num_slots
+        modes = self.modes.to(x.device).expand(P, K, S).reshape(P * K, S)
+        points = x.repeat_interleave(K, dim=0)  # (P·K, 13)
+        per_mode = control.expand(K)
+        with torch.no_grad():
+            problem = self._problem(points, modes, per_mode)
+            solution = solve_mode_unchecked(problem, modes)
+            f = self._advance(points, solution.v_next)  # (P·K, 13)
+            converged = solution.status.converged
+            consistent = torch.ones_like(converged)
+            if self.inconsistency_penalty > 0:
+                consistent = self._consistent(problem, modes)
+        if chart_mode is None:
+            chart = f
+        else:
+            pick = chart_mode.to(x.device) + K * torch.arange(P, device=x.device)
+            chart = f[pick].repeat_interleave(K, dim=0)
+        # Forward-mode derivative along the 12 tangent directions, a batch (P·K·12) of
+        # steps warm-started at the converged impulses (see the class docstring).
+        D = TANGENT_DIM
+        directions = torch.eye(D, dtype=x.dtype, device=x.device).repeat(P * K, 1)
+        start = (
+            solution.pn.repeat_interleave(D, dim=0),
+            solution.pt.repeat_interleave(D, dim=0),
+        )
+        with torch.no_grad(), forward_ad.dual_level():
+            delta = forward_ad.make_dual(torch.zeros_like(directions), directions)
+            moved = SE3.retract(points.repeat_interleave(D, dim=0), delta)
+            rows = modes.repeat_interleave(D, dim=0)
+            problem_d = self._problem(moved, rows, per_mode.expand(D))
+            v_next = solve_mode_unchecked(
+                problem_d, rows, initial_impulses=start, sync_free=True
+            ).v_next
+            stepped = SE3.local(chart.repeat_interleave(D, dim=0), self._advance(moved, v_next))
+            primal, tangent = forward_ad.unpack_dual(stepped)
+        assert tangent is not None
+        F = tangent.reshape(P, K, D, D).transpose(-1, -2)
+        c = primal.reshape(P, K, D, D)[:, :, 0]
+        ok = converged.reshape(P, K)
+        # Placeholders where the mode is ruled out (its weight is -inf): finite, harmless.
+        eye = torch.eye(D, dtype=x.dtype, device=x.device)
+        F = torch.where(ok[..., None, None] & F.isfinite().all((-1, -2), keepdim=True), F, eye)
+        c = torch.where(ok[..., None] & c.isfinite().all(-1, keepdim=True), c, 0.0)
+        f = torch.where(ok[..., None], f.reshape(P, K, STATE_DIM), x[:, None, :])
+        return _Linearization(F=F, f=f, c=c, converged=ok, consistent=consistent.reshape(P, K))
+
+    def _consistent(self, problem: ContactProblem, modes: Tensor) -> Tensor:
+        """``(P,)`` bool: the mode's step is consistent with it once its contacts' gaps are
+        closed up to ``consistency_gap`` (see the class docstring)."""
+        gap = self.consistency_gap
+        phi = problem.phi
+        acting = modes >= 1
+        closed = torch.where(acting, phi - phi.clamp(-gap, gap), phi)
+        problem = ContactProblem.unchecked(
+            M=problem.M,
+            v=problem.v,
+            f=problem.f,
+            Jn=problem.Jn,
+            Jt=problem.Jt,
+            phi=closed,
+            mu=problem.mu,
+            h=problem.h,
+            mask=problem.slot_mask,
+            bn=problem.b_normal,
+            bt=problem.b_tangent,
+        )
+        solution = solve_mode_unchecked(problem, modes)
+        return is_consistent(problem, solution, atol=self.consistency_tolerance)
+
+    def _problem(self, x: Tensor, modes: Tensor, control: _Control) -> ContactProblem:
+        """The contact problem of flat states ``x (P, 13)`` under ``control`` (flat ``P``)."""
+        state = SceneState(
+            q=x[:, None, :7],
+            v=x[:, None, 7:],
+            q_kinematic=control.q_kinematic.to(x.dtype),
+            mode=modes,
+            q_robot=control.q_robot.to(x.dtype),
+            v_robot=control.v_robot.to(x.dtype),
+            robot_base=control.robot_base.to(x.dtype),
+        )
+        problem, _ = contact_problem(
+            self.scene,
+            state,
+            control=None if control.v_kinematic is None else control.v_kinematic.to(x.dtype),
+            joint_command=control.v_robot.to(x.dtype) if self.scene.robots else None,
+            base_twist=None if control.base_twist is None else control.base_twist.to(x.dtype),
+        )
+        return problem
+
+    def _advance(self, x: Tensor, v_next: Tensor) -> Tensor:
+        """``(P, 13)``: the pose integrated over the step with the twist ``v_next (P, 6)``."""
+        pose = integrate_poses(x[:, None, :7], v_next[:, None, :6], self.scene.h)[:, 0]
+        return torch.cat([pose, v_next[:, :6]], dim=-1)
+
+    # ------------------------------------------------------------------------------------------
+    # tactile evidence
+
+    def tactile_log_likelihood(
+        self, readings: Tensor, *, pose: Tensor, control: RobotControl | None = None
+    ) -> Tensor:
+        """``log p(readings | mode k)`` of the pads on the robot's links, for every mode.
+
+        Mode ``k`` touches at its active robot slots (``modes[k] >= 1`` and a candidate slot
+        at ``pose``); a pad is triggered when such a contact point lies within its radius and
+        the contact normal within its cone (:class:`~torchcontact.states.TactileArray`, every
+        active contact taken to carry load), and reads ``True`` up to the array's
+        false-positive and false-negative rates, independently across pads.
+
+        Args:
+            readings: ``(*B, S_t)`` bool readings, the arrays of :attr:`tactile` concatenated
+                in order.
+            pose: ``(*B, 7)`` the tracked body's pose at which the contacts are placed (e.g.
+                the belief's mean pose before the step).
+            control: the robots' joint positions and base poses.
+
+        Returns:
+            ``(*B, K)`` log-likelihoods, the filter's dtype; pass as the RBPF step's
+            ``extra_log_likelihood``.
+        """
+        total = sum(pads.num_sensors for pads in self.tactile.values())
+        if not isinstance(pose, Tensor) or not pose.is_floating_point() or pose.shape[-1:] != (7,):
+            raise ValueError(f"pose: expected a floating (*B, 7) tensor, got {describe(pose)}")
+        if not bool(torch.isfinite(pose).all()):
+            raise ValueError("pose: contains NaN or inf")
+        if (
+            not isinstance(readings, Tensor)
+            or readings.dtype != torch.bool
+            or readings.shape[-1:] != (total,)
+        ):
+            raise ValueError(
+                f"readings: expected a bool (*B, {total}) tensor, got {describe(readings)}"
+            )
+        batch = torch.broadcast_shapes(pose.shape[:-1], readings.shape[:-1])
+        P = math.prod(batch)
+        ctrl = self._control(control, batch)
+        x = torch.cat(
+            [pose.to(torch.float64).expand(*batch, 7).reshape(P, 7), pose.new_zeros(P, 6).double()],
+            dim=-1,
+        )
+        state = SceneState(
+            q=x[:, None, :7],
+            v=x[:, None, 7:],
+            q_kinematic=ctrl.q_kinematic,
+            mode=torch.zeros(P, self.scene.num_slots, dtype=torch.long, device=x.device),
+            q_robot=ctrl.q_robot,
+            v_robot=ctrl.v_robot,
+            robot_base=ctrl.robot_base,
+        )
+        _, geometry = contact_problem(self.scene, state)
+        acting, which = self._acting_sets  # (U, S), (K,)
+        U = acting.shape[0]
+        log_lik = x.new_zeros(P, U)
+        flat_readings = readings.expand(*batch, total).reshape(P, total)
+        start = 0
+        for pads, slots, (member, frame) in self._pad_slots:
+            origin, rotation = self._link_frame(ctrl, member, frame)  # (P, 3), (P, 3, 3)
+            # In the link's frame: robot slots' normals point from the box into the link's
+            # primitive, i.e. into the body that carries the pads, as TactileArray expects.
+            points = (geometry.points[:, slots] - origin[:, None]) @ rotation
+            normals = geometry.normals[:, slots] @ rotation
+            L, dtype = len(slots), pads.positions.dtype
+            contacts = ContactSet(
+                points=points.unsqueeze(1).expand(P, U, L, 3).to(dtype),
+                normals=normals.unsqueeze(1).expand(P, U, L, 3).to(dtype),
+                pn=torch.ones(P, U, L, dtype=dtype, device=x.device),
+                mode=acting[:, slots].expand(P, U, L),
+                partner=torch.zeros(L, dtype=torch.long, device=x.device),
+                partner_kind=[PartnerKind.ENVIRONMENT],
+                mask=geometry.active[:, slots].unsqueeze(1).expand(P, U, L),
+            )
+            on = pads.reading_probability(pads.triggered(contacts))  # (P, U, S_l)
+            read = flat_readings[:, start : start + pads.num_sensors].unsqueeze(1)
+            start += pads.num_sensors
+            per_pad = torch.where(read, torch.log(on), torch.log1p(-on))
+            log_lik = log_lik + per_pad.sum(-1).to(log_lik.dtype)
+        return log_lik.index_select(-1, which).reshape(*batch, self.num_modes).to(self.dtype)
+
+    # ------------------------------------------------------------------------------------------
+
+    def _H(self) -> Tensor:
+        """``(K, 6, 12)``: the camera measures the pose's tangent, in every mode."""
+        H = self.Q.new_zeros(OBS_TANGENT_DIM, TANGENT_DIM)
+        H[:, :OBS_TANGENT_DIM] = torch.eye(OBS_TANGENT_DIM, dtype=self.Q.dtype)
+        return H.expand(self.num_modes, OBS_TANGENT_DIM, TANGENT_DIM)
+
+    @property
+    def _noise(self) -> dict[str, Tensor]:
+        K = self.num_modes
+        return {
+            "Q": self.Q.expand(K, TANGENT_DIM, TANGENT_DIM),
+            "H": self._H(),
+            "d": self.Q.new_zeros(OBS_TANGENT_DIM).expand(K, OBS_TANGENT_DIM),
+            "R": self.R.expand(K, OBS_TANGENT_DIM, OBS_TANGENT_DIM),
+        }
+
+    @property
+    def _acting_sets(self) -> tuple[Tensor, Tensor]:
+        """The distinct sets of slots the modes activate ``(U, S)`` long, and each mode's."""
+        sets, which = torch.unique((self.modes >= 1).to(torch.long), dim=0, return_inverse=True)
+        return sets, which
+
+    @property
+    def _pad_slots(self) -> list[tuple[TactileArray, list[int], tuple[int, int]]]:
+        """Per tactile link: its pads, the slots of its collision primitives against the
+        tracked body, and ``(robot index, link index)``."""
+        out = []
+        for link, pads in self.tactile.items():
+            robot = next(r for r, m in enumerate(self.scene.robots) if link in m.robot.link_names)
+            shapes = self.scene.robots[robot].robot.collision_shapes
+            slots = [
+                slot
+                for group in self.scene.robot_slot_groups
+                if group.robot == robot and shapes[group.shape].link == link
+                for slot in range(group.start, group.start + group.count)
+            ]
+            out.append(
+                (pads, slots, (robot, self.scene.robots[robot].robot.link_names.index(link)))
+            )
+        return out
+
+    def _link_frame(self, control: _Control, member: int, frame: int) -> tuple[Tensor, Tensor]:
+        """``(P, 3)`` origin and ``(P, 3, 3)`` rotation (link to world) of a robot's link."""
+        robot = self.scene.robots[member].robot
+        start = sum(m.dof for m in self.scene.robots[:member])
+        q = control.q_robot[:, start : start + robot.dof]
+        transform = robot.forward_kinematics(q, robot.link_names[frame])  # (P, 4, 4)
+        base = control.robot_base[:, member]
+        turn = quat_to_matrix(base[:, 3:])
+        origin = (turn @ transform[:, :3, 3:]).squeeze(-1) + base[:, :3]
+        return origin, turn @ transform[:, :3, :3]
+
+    def _control(
+        self, control: RobotControl | None, batch: torch.Size, dtype: torch.dtype = torch.float64
+    ) -> _Control:
+        """The control checked and broadcast to the flat batch ``(prod(batch),)``."""
+        scene = self.scene
+        Nj, R, Nk = scene.num_robot_joints, len(scene.robots), len(scene.kinematic)
+        P = math.prod(batch)
+        device = self.device
+        if control is None:
+            if Nj or Nk:
+                raise ValueError("control: required, the scene has robots or kinematic bodies")
+            control = RobotControl(
+                q_robot=torch.zeros(0, dtype=dtype), v_robot=torch.zeros(0, dtype=dtype)
+            )
+        if not isinstance(control, RobotControl):
+            raise ValueError(f"control: expected a RobotControl, got {type(control).__name__}")
+        bases = [member.base_pose for member in scene.robots]
+        default_base = (
+            torch.stack([b for b in bases if b is not None]) if R else torch.zeros(0, 7)
+        ).to(dtype=dtype, device=device)
+        fields: dict[str, tuple[Tensor | None, tuple[int, ...], bool]] = {
+            "q_robot": (control.q_robot, (Nj,), True),
+            "v_robot": (control.v_robot, (Nj,), True),
+            "robot_base": (control.robot_base, (R, 7), False),
+            "base_twist": (control.base_twist, (R, 6), False),
+            "q_kinematic": (control.q_kinematic, (Nk, 7), Nk > 0),
+            "v_kinematic": (control.v_kinematic, (Nk, 6), False),
+        }
+        out: dict[str, Tensor | None] = {}
+        for name, (value, event, required) in fields.items():
+            if value is None:
+                if required:
+                    raise ValueError(f"control.{name}: required for this scene")
+                out[name] = None
+                continue
+            if (
+                not isinstance(value, Tensor)
+                or not value.is_floating_point()
+                or tuple(value.shape[value.ndim - len(event) :]) != event
+                or value.ndim < len(event)
+            ):
+                raise ValueError(
+                    f"control.{name}: expected a floating (*B, {', '.join(map(str, event))}) "
+                    f"tensor, got {describe(value)}"
+                )
+            if not bool(torch.isfinite(value).all()):
+                raise ValueError(f"control.{name}: contains NaN or inf")
+            try:
+                out[name] = value.to(dtype).expand(*batch, *event).reshape(P, *event)
+            except RuntimeError as err:
+                raise ValueError(
+                    f"control.{name}: batch {tuple(value.shape[: value.ndim - len(event)])} "
+                    f"does not broadcast to {tuple(batch)}"
+                ) from err
+        robot_base = out["robot_base"]
+        if robot_base is None:
+            robot_base = default_base.expand(P, R, 7)
+        q_kinematic = out["q_kinematic"]
+        if q_kinematic is None:
+            q_kinematic = torch.zeros(P, 0, 7, dtype=dtype, device=device)
+        q_robot, v_robot = out["q_robot"], out["v_robot"]
+        assert q_robot is not None
+        assert v_robot is not None
+        return _Control(
+            q_robot=q_robot,
+            v_robot=v_robot,
+            robot_base=robot_base,
+            base_twist=out["base_twist"],
+            q_kinematic=q_kinematic,
+            v_kinematic=out["v_kinematic"],
+        )
+
+
+def _check_state(x: object) -> None:
+    """Raise unless ``x`` is a finite floating ``(*B, 13)`` pose-and-twist tensor."""
+    if not isinstance(x, Tensor) or not x.is_floating_point() or x.shape[-1:] != (STATE_DIM,):
+        raise ValueError(f"x: expected a floating (*B, {STATE_DIM}) tensor, got {describe(x)}")
+    if not bool(torch.isfinite(x).all()):
+        raise ValueError("x: contains NaN or inf")
+    norm = torch.linalg.vector_norm(x[..., 3:7], dim=-1)
+    if bool(((norm - 1).abs() > 1e-6).any()):
+        raise ValueError("x: the quaternion x[..., 3:7] must have unit norm")
