@@ -61,7 +61,7 @@ TIP_ANGLE = math.radians(5.0)  # tilt beyond which the box has tipped
 #: Palm orientation during the grasp: palm down, hand y along world −y (turned π about x).
 PALM_DOWN = torch.tensor([0.0, 1.0, 0.0, 0.0], dtype=F64)
 #: The pairs whose contact state is recorded, in order.
-PAIRS = ("table", "palm", "finger1", "finger2", "finger3")
+BOX_PAIRS = ("table", "palm", "finger1", "finger2", "finger3")
 #: Pad links of the BarrettHand's tactile sensors, in reading order.
 PAD_LINKS = (
     "bhand_palm",
@@ -142,7 +142,7 @@ class BarrettBoxGrasp:
 
     def nominal_half_extents(self) -> tuple[float, float, float]:
         """The box's half extents that the filters assume: the middle of each range."""
-        return tuple(0.5 * sum(getattr(self, name)) for name in ("half_x", "half_y", "half_z"))  # type: ignore[return-value]
+        return (0.5 * sum(self.half_x), 0.5 * sum(self.half_y), 0.5 * sum(self.half_z))
 
     def nominal_mass(self) -> float:
         """The mass that the filters assume: the middle of the range."""
@@ -186,7 +186,7 @@ def barrett_member(robot: Robot | None = None, *, mode: str = "servo") -> RobotM
     )
 
 
-def box_scene(
+def barrett_box_scene(
     half_extents: tuple[float, float, float],
     mass: float,
     friction: float | Tensor,
@@ -194,11 +194,11 @@ def box_scene(
 ) -> Scene:
     """Table (static half-space z = 0), the box (dynamic) and the robot; ``friction`` a
     float or ``(B,)`` (every pair)."""
+    # Body's annotation names the planar shapes only; it takes the spatial ones too.
+    table = Body("table", HalfSpace.ground(), kind="static")  # type: ignore[arg-type]
+    box = Body("box", Box(torch.tensor(half_extents, dtype=F64)), mass=mass)  # type: ignore[arg-type]
     return Scene(
-        bodies=(
-            Body("table", HalfSpace.ground(), kind="static"),
-            Body("box", Box(half_extents), mass=mass),
-        ),
+        bodies=(table, box),
         robots=(member,),
         friction=friction,
         h=H,
@@ -267,31 +267,31 @@ def approach_plan(robot: Robot, steps: int) -> tuple[Tensor, Tensor]:
 
 
 def pair_slots(scene: Scene) -> dict[str, list[int]]:
-    """The slot indices of each pair of :data:`PAIRS` (and ``"arm"``: the WAM's links)."""
+    """The slot indices of each pair of :data:`BOX_PAIRS` (and ``"arm"``: the WAM's links)."""
     table = scene.index("table")
-    slots: dict[str, list[int]] = {name: [] for name in (*PAIRS, "arm")}
+    slots: dict[str, list[int]] = {name: [] for name in (*BOX_PAIRS, "arm")}
     for group in scene.slot_groups:
         if table in (group.receiver, group.other):
             slots["table"].extend(range(group.start, group.start + group.count))
     shapes = scene.robots[0].robot.collision_shapes
-    for group in scene.robot_slot_groups:
-        link = shapes[group.shape].link
+    for robot_group in scene.robot_slot_groups:
+        link = shapes[robot_group.shape].link
         if link == "bhand_palm":
             name = "palm"
         elif link.startswith("bhand_f"):
             name = f"finger{link[7]}"
         else:
             name = "arm"
-        slots[name].extend(range(group.start, group.start + group.count))
+        slots[name].extend(range(robot_group.start, robot_group.start + robot_group.count))
     return slots
 
 
 def pair_states(mode: Tensor, slots: dict[str, list[int]]) -> Tensor:
-    """``(*B, P)`` long contact state of each pair of :data:`PAIRS` from ``(*B, L)`` per-slot
+    """``(*B, P)`` long contact state of each pair of :data:`BOX_PAIRS` from ``(*B, L)`` per-slot
     modes: :data:`SEPARATED` when none of its slots is in contact, :data:`SLIDING` when any
     contact slides (mode ``>= 2``), else :data:`STICKING`."""
     states = []
-    for name in PAIRS:
+    for name in BOX_PAIRS:
         part = mode[..., slots[name]]
         touching = (part > 0).any(-1)
         sliding = (part >= 2).any(-1)
@@ -398,7 +398,7 @@ class BoxTrials:
         mass: ``(B,)`` the boxes' masses (kg).
         friction: ``(B,)`` friction coefficients.
         commands: ``(T, dof)`` joint commands (WAM velocities, hand servo targets).
-        states: ``(T, B, P)`` long true contact state of each pair of :data:`PAIRS` during
+        states: ``(T, B, P)`` long true contact state of each pair of :data:`BOX_PAIRS` during
             each step.
         y: ``(T, B, 7)`` camera poses after each step (position, unit quaternion), NaN while
             occluded.
@@ -439,16 +439,16 @@ class BoxTrials:
         return self.truth.q[1:, :, 0]
 
 
-def tilt(pose: Tensor) -> Tensor:
+def box_tilt(pose: Tensor) -> Tensor:
     """``(*B,)`` angle (rad) between the body z axis of ``(*B, 7)`` poses and world z."""
     rotation = quat_to_matrix(pose[..., 3:7])
     return torch.acos(rotation[..., 2, 2].clamp(-1.0, 1.0))
 
 
 def first_tip_step(pose: Tensor) -> Tensor:
-    """``(B,)`` long first step of ``(T, B, 7)`` poses whose :func:`tilt` exceeds
+    """``(B,)`` long first step of ``(T, B, 7)`` poses whose :func:`box_tilt` exceeds
     :data:`TIP_ANGLE`; ``-1`` where none does."""
-    tipped = tilt(pose) > TIP_ANGLE
+    tipped = box_tilt(pose) > TIP_ANGLE
     first = tipped.to(torch.long).argmax(0)
     return torch.where(tipped.any(0), first, -1)
 
@@ -495,7 +495,9 @@ def box_trials(settings: BarrettBoxGrasp, *, seed: int | None = None) -> BoxTria
         )
         mass = float(uniform(settings.mass, 1))
         friction = frictions[start : start + n]
-        scene = box_scene(tuple(half.tolist()), mass, friction, member)  # type: ignore[arg-type]
+        scene = barrett_box_scene(
+            (float(half[0]), float(half[1]), float(half[2])), mass, friction, member
+        )
         yaw = symmetric(settings.yaw, n)
         q = torch.zeros(n, 1, 7, dtype=F64)
         q[:, 0, 0] = BOX_XY[0] + symmetric(settings.offset_x, n)
@@ -530,7 +532,8 @@ def box_trials(settings: BarrettBoxGrasp, *, seed: int | None = None) -> BoxTria
     )
     y[occluded] = math.nan
     pads = hand_pads(settings, robot)
-    assert truth.q_robot is not None and truth.robot_base is not None
+    assert truth.q_robot is not None
+    assert truth.robot_base is not None
     triggers = pad_triggers(
         scene,
         pads,

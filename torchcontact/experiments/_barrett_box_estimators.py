@@ -23,53 +23,47 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from torchcontact.experiments._barrett_box import (
+    F64,
+    BarrettBoxGrasp,
+    BoxTrials,
+    H,
+    barrett_box_scene,
+    barrett_member,
+    hand_pads,
+    pad_triggers,
+    pair_slots,
+    pair_states,
+)
+from torchcontact.experiments._triangle_grasp import Timing, timed
 from torchcontact.filters import (
+    RBPF,
     SE3,
     Gaussian,
+    RobotControl,
     SimulatorParticleFilter,
+    SpatialContactModel,
     ekf_predict,
     ekf_update,
+    project_out_of_contact,
 )
 from torchcontact.geometry import quat_exp, quat_mul
 from torchcontact.robots import load
 from torchcontact.sim import Scene, SceneState, StepResult
 from torchcontact.states import TactileArray
 
-from torchcontact.experiments._barrett_box import (
-    F64,
-    H,
-    BarrettBoxGrasp,
-    BoxTrials,
-    barrett_member,
-    box_scene,
-    hand_pads,
-    pad_triggers,
-    pair_slots,
-    pair_states,
-)
-
 #: Per-step process noise std of the particle filters: position (m), rotation (rad, body
 #: frame), linear (m/s) and angular (rad/s) velocity.
 PF_NOISE_STD = (5e-4, 5e-4, 5e-4, 5e-3, 5e-3, 5e-3, 0.01, 0.01, 0.01, 0.2, 0.2, 0.2)
+#: Per-step process noise std of the RBPF's modes, in the same tangent.
+RBPF_NOISE_STD = (2e-4, 2e-4, 2e-4, 2e-3, 2e-3, 2e-3, 5e-3, 5e-3, 5e-3, 0.05, 0.05, 0.05)
 #: The prior's std: position (m), rotation (rad), linear and angular velocity.
 PRIOR_STD = (0.005, 0.005, 0.005, 0.035, 0.035, 0.035, 0.01, 0.01, 0.01, 0.1, 0.1, 0.1)
 
 
-@dataclass(frozen=True, eq=False)
-class JointMotion:
-    """The robot's measured motion over one step (a
-    :class:`~torchcontact.filters.RobotMotion`): joint angles ``q_robot`` ``(B, Nj)`` at the
-    start, velocities ``v_robot`` ``(B, Nj)`` over the step; the base stays at the origin."""
-
-    q_robot: Tensor
-    v_robot: Tensor
-    robot_base: Tensor | None = None
-    base_twist: Tensor | None = None
-
-
-def filter_scene(settings: BarrettBoxGrasp) -> Scene:
+def box_filter_scene(settings: BarrettBoxGrasp) -> Scene:
     """The filters' scene: the nominal box on the table and the kinematic robot."""
-    return box_scene(
+    return barrett_box_scene(
         settings.nominal_half_extents(),
         settings.nominal_mass(),
         settings.nominal_friction(),
@@ -77,11 +71,11 @@ def filter_scene(settings: BarrettBoxGrasp) -> Scene:
     )
 
 
-def joint_motion(trials: BoxTrials, t: int) -> JointMotion:
+def joint_motion(trials: BoxTrials, t: int) -> RobotControl:
     """The measured robot motion of step ``t`` (angles at its start, velocities over it)."""
     assert trials.truth.q_robot is not None
     assert trials.truth.v_robot is not None
-    return JointMotion(trials.truth.q_robot[t], trials.truth.v_robot[t + 1])
+    return RobotControl(q_robot=trials.truth.q_robot[t], v_robot=trials.truth.v_robot[t + 1])
 
 
 def box_prior(trials: BoxTrials, gen: torch.Generator) -> Gaussian:
@@ -142,7 +136,7 @@ def run_box_pf(
         state over the particles' simulated modes), ``cloud`` ``(T, N, 7)`` and
         ``cloud_weight`` ``(T, N)`` of trial ``trial``.
     """
-    scene = filter_scene(settings)
+    scene = box_filter_scene(settings)
     slots = pair_slots(scene)
     pads = hand_pads(settings, scene.robots[0].robot)
     pf = SimulatorParticleFilter(
@@ -208,3 +202,178 @@ def run_box_camera(trials: BoxTrials, prior: Gaussian) -> dict[str, Tensor]:
         poses.append(last)
     return {"pose": torch.stack(poses)}
 
+
+def box_contact_model(settings: BarrettBoxGrasp, train: BoxTrials) -> SpatialContactModel:
+    """The RBPF's switching model on :func:`box_filter_scene`: the modes and transition of the
+    training trials' rollouts, process noise :data:`RBPF_NOISE_STD`, the camera's noise and
+    the hand's pads."""
+    scene = box_filter_scene(settings)
+    return SpatialContactModel.from_rollout(
+        scene,
+        train.truth,
+        Q=torch.diag(torch.tensor(RBPF_NOISE_STD, dtype=F64).pow(2)),
+        R=torch.diag(settings.camera_std().pow(2)),
+        tactile=hand_pads(settings, scene.robots[0].robot),
+    )
+
+
+def run_box_rbpf(
+    model: SpatialContactModel,
+    trials: BoxTrials,
+    num_particles: int,
+    gen: torch.Generator,
+    *,
+    prior: Gaussian,
+    projection: bool,
+    gap_sigma: float = 1e-4,
+    trial: int = 0,
+) -> dict[str, Tensor]:
+    """The contact RBPF (all-modes proposal) with the pads' per-mode evidence and, with
+    ``projection``, every particle's Gaussian projected out of the bodies it penetrates
+    after each step (:func:`~torchcontact.filters.project_out_of_contact`).
+
+    Returns:
+        ``pose`` ``(T, B, 7)`` the mixture mean, ``state_probs`` ``(T, B, P, 3)`` each pair's
+        contact-state probabilities (the mode marginals summed over the modes in each
+        state), ``cloud`` ``(T, N, 7)`` and ``cloud_weight`` ``(T, N)`` of trial ``trial``.
+    """
+    rbpf = RBPF(model, num_particles, proposal="all_modes")  # type: ignore[arg-type]
+    belief = rbpf.init(prior)
+    mode_states = pair_states(model.modes, pair_slots(model.scene))  # (K, P)
+    one_hot = torch.nn.functional.one_hot(mode_states, 3).to(F64)  # (K, P, 3)
+    poses, probs, clouds, cloud_weights = [], [], [], []
+    for t in range(trials.steps):
+        control = joint_motion(trials, t)
+        extra = model.tactile_log_likelihood(
+            trials.readings[t], pose=belief.mean()[..., :7], control=control
+        )
+        belief = rbpf.step(
+            belief, trials.y[t], extra_log_likelihood=extra, control=control, generator=gen
+        )
+        if projection:
+            belief = project_out_of_contact(
+                belief,
+                model.scene,
+                control,  # type: ignore[arg-type]
+                gap_sigma=gap_sigma,
+            )
+        poses.append(belief.mean()[..., :7])
+        probs.append(torch.einsum("bk,kpc->bpc", belief.mode_marginals().to(F64), one_hot))
+        clouds.append(belief.gaussians.mean[trial, :, :7].clone())
+        cloud_weights.append(belief.log_weights[trial].exp())
+    return {
+        "pose": torch.stack(poses),
+        "state_probs": torch.stack(probs),
+        "cloud": torch.stack(clouds),
+        "cloud_weight": torch.stack(cloud_weights),
+    }
+
+
+@dataclass(frozen=True, eq=False)
+class BoxEstimatorRuns:
+    """What :func:`run_box_estimators` gives.
+
+    Attributes:
+        outputs: ``{method: output}`` (``pose`` ``(T, B, 7)``; the filters with contact
+            states also ``state_probs`` ``(T, B, P, 3)``, ``cloud`` and ``cloud_weight``).
+        timings: ``{method: Timing}``.
+        particles: ``{method: particle count}`` of the particle filters.
+        calibration: ``{particles: CPU seconds}`` of the plain PF's calibration runs (empty
+            without the RBPF or with a given ``pf_particles``).
+    """
+
+    outputs: dict[str, dict[str, Tensor]]
+    timings: dict[str, Timing]
+    particles: dict[str, int]
+    calibration: dict[int, float]
+
+
+def run_box_estimators(
+    settings: BarrettBoxGrasp,
+    trials: BoxTrials,
+    *,
+    rbpf_particles: int,
+    pf_particles: int,
+    model: SpatialContactModel | None = None,
+    seed: int = 0,
+    done: Callable[[str], None] | None = None,
+) -> BoxEstimatorRuns:
+    """Run every estimator on the trials, timed (this process's CPU time and wall clock).
+
+    ``rbpf`` and ``rbpf_no_projection`` run when ``model`` is given. ``pf_same_n`` has
+    ``rbpf_particles`` particles; ``pf`` has ``pf_particles`` if it is positive, else as many
+    as fit in the RBPF's CPU time per step (fitted through timed runs, as
+    :func:`~torchcontact.experiments.calibrate_pf` does for the triangle; without the RBPF,
+    ``rbpf_particles``). Every filter starts from the same prior (:func:`box_prior`) and
+    draws from its own generator (``seed`` plus an offset).
+
+    Args:
+        settings: the settings.
+        trials: the trials.
+        rbpf_particles: the RBPF's particle count (and ``pf_same_n``'s).
+        pf_particles: the plain PF's, or 0 (see above).
+        model: the RBPF's model (:func:`box_contact_model`), or None.
+        seed: the seed of the filters' draws.
+        done: called with each method's name as it finishes (e.g. a progress bar).
+    """
+
+    def generator(offset: int) -> torch.Generator:
+        return torch.Generator().manual_seed(seed + offset)
+
+    def report(method: str) -> None:
+        if done is not None:
+            done(method)
+
+    prior = box_prior(trials, generator(1))
+    outputs: dict[str, dict[str, Tensor]] = {}
+    timings: dict[str, Timing] = {}
+    particles: dict[str, int] = {}
+    if model is not None:
+        for offset, (method, projection) in enumerate(
+            (("rbpf", True), ("rbpf_no_projection", False)), start=2
+        ):
+
+            def rbpf_run(projection: bool = projection, offset: int = offset) -> dict[str, Tensor]:
+                assert model is not None
+                return run_box_rbpf(
+                    model,
+                    trials,
+                    rbpf_particles,
+                    generator(offset),
+                    prior=prior,
+                    projection=projection,
+                )
+
+            outputs[method], timings[method] = timed(rbpf_run)
+            particles[method] = rbpf_particles
+            report(method)
+    calibration: dict[int, float] = {}
+
+    def pf_run(n: int) -> tuple[dict[str, Tensor], Timing]:
+        return timed(lambda: run_box_pf(trials, settings, n, generator(4), prior=prior))
+
+    if pf_particles > 0 or "rbpf" not in timings:
+        n = pf_particles if pf_particles > 0 else rbpf_particles
+        outputs["pf"], timings["pf"] = pf_run(n)
+    else:
+        target = timings["rbpf"].cpu
+        runs = {n: pf_run(n) for n in (2, 8)}
+        calibration = {n: run[1].cpu for n, run in runs.items()}
+        slope = max((calibration[8] - calibration[2]) / 6, 1e-9)
+        n = max(2, round(2 + (target - calibration[2]) / slope))
+        if n not in runs:
+            runs[n] = pf_run(n)
+            calibration[n] = runs[n][1].cpu
+        outputs["pf"], timings["pf"] = runs[n]
+    particles["pf"] = n
+    report("pf")
+    outputs["pf_same_n"], timings["pf_same_n"] = timed(
+        lambda: run_box_pf(trials, settings, rbpf_particles, generator(5), prior=prior)
+    )
+    particles["pf_same_n"] = rbpf_particles
+    report("pf_same_n")
+    outputs["ekf"], timings["ekf"] = timed(lambda: run_box_ekf(trials, settings, prior))
+    report("ekf")
+    outputs["camera"], timings["camera"] = timed(lambda: run_box_camera(trials, prior))
+    report("camera")
+    return BoxEstimatorRuns(outputs, timings, particles, calibration)

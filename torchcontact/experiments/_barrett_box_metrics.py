@@ -17,7 +17,8 @@ TIP_TOLERANCE = 3
 def geodesic_angle(a: Tensor, b: Tensor) -> Tensor:
     """``(*B,)`` angle (rad) of the rotation between unit quaternions ``(*B, 4)``:
     ``|Log(a⁻¹ ⊗ b)|``, in ``[0, π]``."""
-    return torch.linalg.vector_norm(quat_log(quat_mul(quat_conj(a), b)), dim=-1)
+    angle: Tensor = torch.linalg.vector_norm(quat_log(quat_mul(quat_conj(a), b)), dim=-1)
+    return angle
 
 
 def box_tracking_metrics(
@@ -64,7 +65,9 @@ def box_tracking_metrics(
     """
     T, B = true_pose.shape[:2]
     if pose.shape != true_pose.shape or true_pose.shape[-1] != 7:
-        raise ValueError(f"pose: expected shape {tuple(true_pose.shape)} (T, B, 7), got {tuple(pose.shape)}")
+        raise ValueError(
+            f"pose: expected shape {tuple(true_pose.shape)} (T, B, 7), got {tuple(pose.shape)}"
+        )
     if occluded.shape != (T,) or occluded.dtype != torch.bool or not bool(occluded.any()):
         raise ValueError(f"occluded: expected a ({T},) bool mask with an occluded step")
     if true_tip.shape != (B,) or tip.shape != (B,):

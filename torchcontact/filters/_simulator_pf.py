@@ -6,7 +6,6 @@ import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import KW_ONLY, dataclass
-from typing import Protocol
 
 import torch
 from torch import Tensor
@@ -16,6 +15,7 @@ from torchcontact.filters._contact_model import KinematicControl
 from torchcontact.filters._gaussian import Gaussian, check_gaussian
 from torchcontact.filters._manifold import SE3
 from torchcontact.filters._resampling import RESAMPLING_METHODS, ResamplingMethod, resample
+from torchcontact.filters._spatial_contact_model import RobotControl
 from torchcontact.geometry import wrap_angle
 from torchcontact.sim import UNSOLVED, Scene, SceneState, Simulator, StepResult
 
@@ -26,26 +26,6 @@ ParticleLogLikelihood = Callable[[SceneState, StepResult], Tensor]
 _STATE_SIZE = {2: 6, 3: 13}
 _TANGENT_SIZE = {2: 6, 3: 12}
 _MEASUREMENT_SIZE = {2: 3, 3: 6}
-
-
-class RobotMotion(Protocol):
-    """The measured motion of a spatial scene's kinematic robots over one step (e.g. the
-    spatial contact model's ``RobotControl``): joint positions ``q_robot`` ``(*B, Nj)`` at the
-    start of the step, joint velocities ``v_robot`` ``(*B, Nj)`` during it, and the bases'
-    poses ``robot_base`` ``(*B, R, 7)`` and twists ``base_twist`` ``(*B, R, 6)`` (None: each
-    member's ``base_pose``, at rest)."""
-
-    @property
-    def q_robot(self) -> Tensor: ...
-
-    @property
-    def v_robot(self) -> Tensor: ...
-
-    @property
-    def robot_base(self) -> Tensor | None: ...
-
-    @property
-    def base_twist(self) -> Tensor | None: ...
 
 
 @dataclass(frozen=True, eq=False)
@@ -118,7 +98,8 @@ class SimulatorParticleFilter:
     the 13 numbers of :data:`~torchcontact.filters.SE3` with a twist (position, unit
     quaternion, ``(v, ω)``), noise and measurement residuals live in its tangent
     (``retract``/``local``), and the control is the measured motion of the scene's kinematic
-    robots (:class:`RobotMotion`: joint angles and velocities, base poses and twists).
+    robots (:class:`~torchcontact.filters.RobotControl`: joint angles and velocities, base
+    poses and twists).
 
     One :meth:`step` (Gordon, Salmond and Smith 1993):
 
@@ -223,7 +204,7 @@ class SimulatorParticleFilter:
         belief: SimulatorPFBelief,
         y: Tensor,
         *,
-        control: KinematicControl | RobotMotion,
+        control: KinematicControl | RobotControl,
         extra_log_likelihood: ParticleLogLikelihood | None = None,
         generator: torch.Generator | None = None,
     ) -> SimulatorPFBelief:
@@ -235,7 +216,8 @@ class SimulatorParticleFilter:
                 (position, unit quaternion); NaN: none.
             control: planar: a :class:`~torchcontact.filters.KinematicControl`, the kinematic
                 bodies' ``(*B, Nk, 3)`` poses at the start of the step and twists during it;
-                spatial: a :class:`RobotMotion` of the scene's kinematic robots.
+                spatial: a :class:`~torchcontact.filters.RobotControl`, the measured motion
+                of the scene's kinematic robots.
             extra_log_likelihood: optional per-particle log-likelihood of the simulated step.
             generator: random source (reproducible runs); torch's default if None.
 
@@ -343,16 +325,16 @@ class SimulatorParticleFilter:
         joints, robots = scene.num_robot_joints, len(scene.robots)
         if scene.kinematic:
             raise ValueError("scene: a spatial filter scene moves robots, not kinematic bodies")
+        if not isinstance(control, RobotControl):
+            raise ValueError(f"control: expected a RobotControl, got {type(control).__name__}")
         values = {}
-        for name, shape, required in (
-            ("q_robot", (*batch, joints), True),
-            ("v_robot", (*batch, joints), True),
-            ("robot_base", (*batch, robots, 7), False),
-            ("base_twist", (*batch, robots, 6), False),
+        for name, shape in (
+            ("q_robot", (*batch, joints)),
+            ("v_robot", (*batch, joints)),
+            ("robot_base", (*batch, robots, 7)),
+            ("base_twist", (*batch, robots, 6)),
         ):
-            value = getattr(control, name, None)
-            if value is None and required:
-                raise ValueError(f"control: expected a RobotMotion with {name}, got {control!r}")
+            value = getattr(control, name)
             if value is not None:
                 check_batched(f"control.{name}", value, shape=shape, like=like, like_name="belief")
                 value = value.unsqueeze(len(batch)).expand(*batch, N, *shape[len(batch) :])
