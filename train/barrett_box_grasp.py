@@ -111,12 +111,12 @@ def run(args: Args) -> dict[str, Any]:
     if args.fast:
         args = dataclasses.replace(
             args,
-            trials=min(args.trials, 2),
-            trials_per_box=min(args.trials_per_box, 2),
-            train_trials=min(args.train_trials, 2),
-            steps=min(args.steps, 16),
-            rbpf_particles=min(args.rbpf_particles, 4),
-            pf_particles=args.pf_particles or 4,
+            trials=1,
+            trials_per_box=1,
+            train_trials=1,
+            steps=12,
+            rbpf_particles=min(args.rbpf_particles, 2),
+            pf_particles=args.pf_particles or 2,
         )
     check_args(args)
     torch.manual_seed(args.seed)
