@@ -76,7 +76,7 @@ def plot_box_snapshots(
     pose (blue wireframe) and the estimates of ``methods`` (coloured wireframes, the
     particle filters' particle positions as dots)."""
     import matplotlib.pyplot as plt
-    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # type: ignore[import-untyped]
 
     half = trials.half_extents[trial]
     fig = plt.figure(figsize=(4.2 * len(steps), 4.2))
