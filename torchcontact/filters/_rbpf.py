@@ -4,9 +4,11 @@ kernels are in ``_rbpf_kernels``)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import KW_ONLY, dataclass
+from functools import cached_property
 from typing import Any, Literal, get_args
 
 import torch
@@ -17,6 +19,7 @@ from torchcontact.filters import _linalg as la
 from torchcontact.filters._compiled import kernel
 from torchcontact.filters._gaussian import Gaussian, check_gaussian, unchecked_gaussian
 from torchcontact.filters._kalman import observed_components
+from torchcontact.filters._manifold import EUCLIDEAN, Euclidean, Manifold
 from torchcontact.filters._rbpf_belief import RBPFBelief, SwitchingModel
 from torchcontact.filters._rbpf_kernels import (
     DEAD,
@@ -180,6 +183,27 @@ class RBPF:
         if not isinstance(self.compiled, bool):
             raise ValueError(f"compiled: expected a bool, got {self.compiled!r}")
 
+    @cached_property
+    def manifold(self) -> Manifold:
+        """The state's manifold: the model's ``manifold`` attribute, else
+        :data:`~torchcontact.filters.EUCLIDEAN`."""
+        return _manifold_of(self.model, "manifold")
+
+    @cached_property
+    def measurement_manifold(self) -> Manifold:
+        """The measurement's manifold: the model's ``measurement_manifold`` attribute, else
+        :data:`~torchcontact.filters.EUCLIDEAN`."""
+        return _manifold_of(self.model, "measurement_manifold")
+
+    @cached_property
+    def _dims(self) -> tuple[int, int]:
+        """The Kalman filters' sizes: the state's and the measurement's tangent dimensions."""
+        model = self.model
+        return (
+            self.manifold.tangent_dim(model.state_dim),
+            self.measurement_manifold.tangent_dim(model.obs_dim),
+        )
+
     # ------------------------------------------------------------------------------------------
     # initialization
 
@@ -215,12 +239,15 @@ class RBPF:
         Returns:
             The initial :class:`RBPFBelief` (``log_evidence == 0``).
         """
-        prior = check_gaussian(prior, "prior", euclidean=True)
+        euclidean = isinstance(self.manifold, Euclidean)
+        prior = check_gaussian(prior, "prior", euclidean=euclidean)
         model = self.model
-        if prior.dim != model.state_dim or prior.dtype != model.dtype:
+        d = self._dims[0]
+        if prior.dim != model.state_dim or prior.tangent_dim != d or prior.dtype != model.dtype:
             raise ValueError(
-                f"prior: expected n = {model.state_dim} and dtype {model.dtype}, got "
-                f"n = {prior.dim} and {prior.dtype}"
+                f"prior: expected n = {model.state_dim}, covariance ({d}, {d}) and dtype "
+                f"{model.dtype}, got n = {prior.dim}, covariance {tuple(prior.cov.shape[-2:])} "
+                f"and {prior.dtype}"
             )
         try:
             batch = torch.broadcast_shapes(prior.batch_shape, tuple(batch_shape))
@@ -230,7 +257,7 @@ class RBPF:
                 f"{tuple(prior.batch_shape)}"
             ) from err
         n, nb = model.state_dim, len(batch)
-        prior = unchecked_gaussian(prior.mean.expand(*batch, n), prior.cov.expand(*batch, n, n))
+        prior = unchecked_gaussian(prior.mean.expand(*batch, n), prior.cov.expand(*batch, d, d))
         modes, log_w, history = self._initial_particles(batch)
         mean, cov = self._prior_particles(prior, nb)
         return RBPFBelief(
@@ -242,6 +269,7 @@ class RBPF:
             degenerate=torch.zeros(batch, dtype=torch.bool, device=model.device),
             prior=prior,
             num_modes=model.num_modes,
+            manifold=self.manifold,
         )
 
     def _prior_particles(self, prior: Gaussian, nb: int) -> tuple[Tensor, Tensor]:
@@ -318,12 +346,19 @@ class RBPF:
                 f"y: inputs must broadcast to the belief's batch {tuple(batch)}, got "
                 + ", ".join(f"{name} {tuple(s)}" for name, s in shapes[1:])
             )
-        observed = observed_components(y, mask)
+        euclidean_y = isinstance(self.measurement_manifold, Euclidean)
+        observed = observed_components(y, mask) if euclidean_y else None
         dynamics = self.model.mode_dynamics(belief, control)
         if not isinstance(dynamics, ModeDynamics):
             raise ValueError(
                 f"model: mode_dynamics returned {type(dynamics).__name__}, not ModeDynamics"
             )
+        if not euclidean_y:
+            y = self._measurement_in_chart(y, dynamics.measurement_chart)
+            observed = observed_components(y, mask)
+        chart = None
+        if not isinstance(self.manifold, Euclidean):
+            belief, chart = self._belief_in_chart(belief, dynamics)
         packed, shared, mode_log_weight = self._packed_dynamics(belief, dynamics)
         rows = self._transition_rows(belief, transition, dynamics.transition_rows)
         # Without gradients to carry, the step runs without autograd's bookkeeping. (Not in
@@ -337,8 +372,50 @@ class RBPF:
         )
         with torch.set_grad_enabled(tracked):
             step = self._step_bootstrap if self.proposal == "bootstrap" else self._step_all_modes
-            new = step(belief, packed, shared, mode_log_weight, y, observed, rows, extra, generator)
+            new = step(
+                belief, packed, shared, mode_log_weight, y, observed, rows, extra, generator, chart
+            )
         return new
+
+    def _measurement_in_chart(self, y: Tensor, chart: Tensor | None) -> Tensor:
+        """``local(chart, y)`` ``(*B, k)``: a measurement on the measurement manifold in the
+        tangent at the model's ``measurement_chart``; a measurement with a NaN is NaN in every
+        component (missing)."""
+        m = self.model.obs_dim
+        if not isinstance(chart, Tensor) or chart.shape[-1:] != (m,):
+            raise ValueError(
+                f"model: mode_dynamics().measurement_chart must be a (*B, {m}) tensor for a "
+                f"measurement on a manifold, got {describe(chart)}"
+            )
+        batch = torch.broadcast_shapes(y.shape[:-1], chart.shape[:-1])
+        missing = torch.isnan(y).any(-1, keepdim=True)
+        local = self.measurement_manifold.local(
+            chart.expand(*batch, m), torch.where(missing, chart, y).expand(*batch, m)
+        )
+        return torch.where(missing, math.nan, local)
+
+    def _belief_in_chart(
+        self, belief: RBPFBelief, dynamics: ModeDynamics
+    ) -> tuple[RBPFBelief, Tensor]:
+        """The belief with its particles' means in the tangent at ``dynamics.origin``
+        (``local(origin, μ_i)``), and the ``(*B, n)`` chart its predictions are retracted
+        from."""
+        n = self.model.state_dim
+        batch, N = belief.batch_shape, self.num_particles
+        for name in ("origin", "chart"):
+            value = getattr(dynamics, name)
+            if not isinstance(value, Tensor) or value.shape[-1:] != (n,):
+                raise ValueError(
+                    f"model: mode_dynamics().{name} must be a (*B, {n}) tensor for a state on "
+                    f"a manifold, got {describe(value)}"
+                )
+        assert dynamics.origin is not None
+        assert dynamics.chart is not None
+        g = belief.gaussians
+        origin = dynamics.origin.unsqueeze(-2).expand(*batch, N, n)
+        delta = self.manifold.local(origin, g.mean)
+        local = dataclasses.replace(belief, gaussians=unchecked_gaussian(delta, g.cov))
+        return local, dynamics.chart.expand(*batch, n)
 
     def _transition_rows(
         self, belief: RBPFBelief, transition: Tensor, rows: Tensor | None
@@ -386,7 +463,7 @@ class RBPF:
             step (:func:`dynamics_flags`).
         """
         model = self.model
-        K, n, m = model.num_modes, model.state_dim, model.obs_dim
+        K, (n, m) = model.num_modes, self._dims
         events = {
             "F": (K, n, n),
             "c": (K, n),
@@ -470,6 +547,7 @@ class RBPF:
         rows: Tensor,
         extra: Tensor | None,
         generator: torch.Generator | None,
+        chart: Tensor | None,
     ) -> RBPFBelief:
         model, N = self.model, self.num_particles
         batch, nb = belief.batch_shape, len(belief.batch_shape)
@@ -497,8 +575,8 @@ class RBPF:
             belief.log_evidence,
             belief.history,
             belief.modes,
-            n=model.state_dim,
-            m=model.obs_dim,
+            n=self._dims[0],
+            m=self._dims[1],
             measured=self._measured(observed),
             entrywise=self.compiled,
             log_ess_bound=-math.log(max(self.ess_threshold * N, 1e-300)),
@@ -511,7 +589,9 @@ class RBPF:
             index = torch.where(resample.unsqueeze(-1), index, identity)
             modes, history, mean, cov = gather_particles(index, modes, history, mean, cov)
             log_w = torch.where(resample.unsqueeze(-1), -math.log(N), log_w)
-        return self._belief(belief, modes, log_w, mean, cov, log_evidence, history, dead, any_dead)
+        return self._belief(
+            belief, modes, log_w, mean, cov, log_evidence, history, dead, any_dead, chart
+        )
 
     def _step_all_modes(
         self,
@@ -524,6 +604,7 @@ class RBPF:
         rows: Tensor,
         extra: Tensor | None,
         generator: torch.Generator | None,
+        chart: Tensor | None,
     ) -> RBPFBelief:
         N, K = self.num_particles, self.model.num_modes
         batch, nb = belief.batch_shape, len(belief.batch_shape)
@@ -569,12 +650,14 @@ class RBPF:
             shared,
             y_bl,
             obs_bl,
-            n=self.model.state_dim,
-            m=self.model.obs_dim,
+            n=self._dims[0],
+            m=self._dims[1],
             measured=measured,
             entrywise=self.compiled,
         )
-        return self._belief(belief, modes, log_w, mean, cov, log_evidence, history, dead, any_dead)
+        return self._belief(
+            belief, modes, log_w, mean, cov, log_evidence, history, dead, any_dead, chart
+        )
 
     def _children_log_likelihood(
         self,
@@ -604,7 +687,7 @@ class RBPF:
             measured: :meth:`_measured` of ``observed``; ``False``: likelihood 1.
         """
         model = self.model
-        n, m, K = model.state_dim, model.obs_dim, model.num_modes
+        (n, m), K = self._dims, model.num_modes
         if not measured:
             return mean.new_zeros(*mean.shape[1:], K)  # no measurement: likelihood 1
         nb, lead = mean.ndim - 2, packed.ndim - 2
@@ -657,8 +740,15 @@ class RBPF:
         history: Tensor,
         dead: Tensor,
         any_dead: bool,
+        chart: Tensor | None = None,
     ) -> RBPFBelief:
-        """Assemble the new belief, resetting the entries flagged ``dead`` to the prior."""
+        """Assemble the new belief, resetting the entries flagged ``dead`` to the prior; with
+        a ``chart`` ``(*B, n)``, the means ``(d, *B, N)`` are tangent vectors there."""
+        if chart is not None:
+            batch, N = previous.batch_shape, self.num_particles
+            delta = la.to_batch_first(mean, 1)
+            point = chart.unsqueeze(-2).expand(*batch, N, chart.shape[-1])
+            mean = la.to_batch_last(self.manifold.retract(point, delta), 1, len(batch) + 1)
         if any_dead:
             batch = previous.batch_shape
             modes0, log_w0, history0 = self._initial_particles(batch)
@@ -678,6 +768,7 @@ class RBPF:
             degenerate=dead,
             prior=previous.prior,
             num_modes=self.model.num_modes,
+            manifold=self.manifold,
         )
 
     def _check_belief(self, belief: object) -> RBPFBelief:
@@ -692,6 +783,7 @@ class RBPF:
             or belief.num_particles != self.num_particles
             or belief.max_lag != self.max_lag
             or g.dim != model.state_dim
+            or g.tangent_dim != self._dims[0]
             or g.dtype != model.dtype
         ):
             raise ValueError(
@@ -725,3 +817,11 @@ class RBPF:
             raise ValueError(f"action: values must lie in [0, {actions})")
         shapes.append(("action", action.shape))
         return model.transition[action]
+
+
+def _manifold_of(model: object, name: str) -> Manifold:
+    """A model's optional manifold attribute ``name`` (default Euclidean), checked."""
+    manifold = getattr(model, name, EUCLIDEAN)
+    if not isinstance(manifold, Manifold):
+        raise ValueError(f"model: its {name} must be a Manifold, got {describe(manifold)}")
+    return manifold

@@ -9,7 +9,12 @@ import torch
 from torch import Tensor
 
 from torchcontact.filters._gaussian import Gaussian
+from torchcontact.filters._manifold import EUCLIDEAN, Euclidean, Manifold
 from torchcontact.filters._switching import ModeDynamics
+
+#: Gauss–Newton steps of :meth:`RBPFBelief.mean` on a manifold (enough for particles spread
+#: over a few degrees: each step shrinks the error by orders of magnitude).
+KARCHER_STEPS = 3
 
 
 @runtime_checkable
@@ -89,6 +94,8 @@ class RBPFBelief:
         prior: the prior of :meth:`~torchcontact.filters.RBPF.init` (batch ``*B``), the reset
             target.
         num_modes: ``K``.
+        manifold: the state's manifold (the filter's): particle means are points of it and
+            covariances live in its tangent at them.
     """
 
     modes: Tensor
@@ -99,6 +106,7 @@ class RBPFBelief:
     degenerate: Tensor
     prior: Gaussian
     num_modes: int
+    manifold: Manifold = EUCLIDEAN
 
     @property
     def batch_shape(self) -> torch.Size:
@@ -136,15 +144,37 @@ class RBPFBelief:
         return self.fixed_lag_marginals(0)
 
     def mean(self) -> Tensor:
-        r"""Mixture mean :math:`\sum_i w_i \mu_i`, ``(*B, n)``."""
+        r"""Mixture mean :math:`\sum_i w_i \mu_i`, ``(*B, n)``.
+
+        On a manifold, the weighted Karcher mean: from the heaviest particle's mean
+        :math:`\bar\mu`, ``KARCHER_STEPS`` Gauss–Newton steps
+        :math:`\bar\mu \leftarrow \mathrm{retract}(\bar\mu, \sum_i w_i\,
+        \mathrm{local}(\bar\mu, \mu_i))` (for unit quaternions: sign-invariant, normalized).
+        """
         w = torch.exp(self.log_weights).unsqueeze(-1)
-        return (w * self.gaussians.mean).sum(-2)
+        if isinstance(self.manifold, Euclidean):
+            return (w * self.gaussians.mean).sum(-2)
+        means = self.gaussians.mean
+        heaviest = self.log_weights.argmax(-1)[..., None, None].expand(
+            *self.batch_shape, 1, means.shape[-1]
+        )
+        centre = means.gather(-2, heaviest).squeeze(-2)
+        for _ in range(KARCHER_STEPS):
+            step = (w * self.manifold.local(centre.unsqueeze(-2).expand_as(means), means)).sum(-2)
+            centre = self.manifold.retract(centre, step)
+        return centre
 
     def cov(self) -> Tensor:
         r"""Moment-matched mixture covariance
-        :math:`\sum_i w_i (P_i + (\mu_i - \bar\mu)(\mu_i - \bar\mu)^\top)`, ``(*B, n, n)``."""
+        :math:`\sum_i w_i (P_i + (\mu_i - \bar\mu)(\mu_i - \bar\mu)^\top)`, ``(*B, d, d)``
+        (on a manifold with :math:`\mathrm{local}(\bar\mu, \mu_i)` for the deviations, in
+        the tangent at the mean)."""
         w = torch.exp(self.log_weights)[..., None, None]
-        dev = self.gaussians.mean - self.mean().unsqueeze(-2)
+        means = self.gaussians.mean
+        if isinstance(self.manifold, Euclidean):
+            dev = means - self.mean().unsqueeze(-2)
+        else:
+            dev = self.manifold.local(self.mean().unsqueeze(-2).expand_as(means), means)
         spread = dev.unsqueeze(-1) * dev.unsqueeze(-2)
         return (w * (self.gaussians.cov + spread)).sum(-3)
 

@@ -10,7 +10,6 @@ from typing import Any
 
 import torch
 from torch import Tensor
-from torch.autograd import forward_ad
 
 from torchcontact._checks import FLOAT_DTYPES, describe
 from torchcontact.contact import (
@@ -152,7 +151,7 @@ class SpatialContactModel:
     so that particle :math:`i` with mean :math:`\mu_i` predicts
     :math:`\mathrm{retract}(z, F_k\, \mathrm{local}(\bar x, \mu_i) + c_k)`
     (:class:`~torchcontact.filters.ModeDynamics` with ``origin`` :math:`\bar x` and ``chart``
-    :math:`z`). The Jacobian is exact (float64, forward-mode automatic differentiation of the
+    :math:`z`). The Jacobian is exact (float64, automatic differentiation of the
     step through :func:`~torchcontact.sim.contact_problem` and
     :func:`~torchcontact.contact.solve_mode`, the twelve tangent directions and all ``K``
     modes in one batch): the mode solve is differentiated from its converged impulses
@@ -445,8 +444,7 @@ class SpatialContactModel:
         ctrl = self._control(control, batch, x.dtype)
         modes = self.modes[mode.expand(batch)].reshape(-1, self.scene.num_slots)
         flat = x.expand(*batch, STATE_DIM).reshape(-1, STATE_DIM)
-        problem = self._problem(flat, modes, ctrl)
-        v_next = solve_mode(problem, modes).v_next
+        v_next = solve_mode(self._problem(flat, ctrl), modes).v_next
         return self._advance(flat, v_next).reshape(*batch, STATE_DIM)
 
     def linearize(
@@ -480,16 +478,18 @@ class SpatialContactModel:
         """Every mode at ``x (P, 13)`` (float64): the steps, the Jacobians and the gate.
 
         ``chart_mode (P,)``: express every mode's step in the tangent at the step of that
-        mode (``c`` its offsets); None: each mode's in its own (``c = 0``).
+        mode (``c`` its offsets); None: each mode's in its own (``c = 0``). The contact
+        problems are assembled once per point (they do not depend on the mode) and reduced
+        to the slots that some mode activates (the others are separated in every mode and
+        carry no impulse: the same steps).
         """
-        P, K, S = x.shape[0], self.num_modes, self.scene.num_slots
-        modes = self.modes.to(x.device).expand(P, K, S).reshape(P * K, S)
-        points = x.repeat_interleave(K, dim=0)  # (P·K, 13)
-        per_mode = control.expand(K)
+        P, K, D = x.shape[0], self.num_modes, TANGENT_DIM
+        slots = self._acting_slots.to(x.device)
+        modes = self.modes.to(x.device).index_select(1, slots).expand(P, K, -1)
         with torch.no_grad():
-            problem = self._problem(points, modes, per_mode)
+            problem = _per_mode(_select_slots(self._problem(x, control), slots), K)
             solution = solve_mode_unchecked(problem, modes)
-            f = self._advance(points, solution.v_next)  # (P·K, 13)
+            f = self._advance(x.unsqueeze(1), solution.v_next)  # (P, K, 13)
             converged = solution.status.converged
             consistent = torch.ones_like(converged)
             if self.inconsistency_penalty > 0:
@@ -497,67 +497,55 @@ class SpatialContactModel:
         if chart_mode is None:
             chart = f
         else:
-            pick = chart_mode.to(x.device) + K * torch.arange(P, device=x.device)
-            chart = f[pick].repeat_interleave(K, dim=0)
-        # Forward-mode derivative along the 12 tangent directions, a batch (P·K·12) of
-        # steps warm-started at the converged impulses (see the class docstring).
-        D = TANGENT_DIM
-        directions = torch.eye(D, dtype=x.dtype, device=x.device).repeat(P * K, 1)
+            chart = f.gather(1, chart_mode.to(x.device)[:, None, None].expand(P, 1, STATE_DIM))
+        # The derivative along the 12 tangent directions, by reverse-mode differentiation
+        # (faster here than forward mode) of a batch of P·K·12 steps warm-started at the
+        # converged impulses (see the class docstring): replica (p, k, i) yields row i of
+        # mode k's Jacobian at point p.
         start = (
-            solution.pn.repeat_interleave(D, dim=0),
-            solution.pt.repeat_interleave(D, dim=0),
+            solution.pn.unsqueeze(2).expand(P, K, D, -1),
+            solution.pt.unsqueeze(2).expand(P, K, D, *solution.pt.shape[-2:]),
         )
-        with torch.no_grad(), forward_ad.dual_level():
-            delta = forward_ad.make_dual(torch.zeros_like(directions), directions)
-            moved = SE3.retract(points.repeat_interleave(D, dim=0), delta)
-            rows = modes.repeat_interleave(D, dim=0)
-            problem_d = self._problem(moved, rows, per_mode.expand(D))
+        with torch.enable_grad():
+            delta = x.new_zeros(P, K, D, D).requires_grad_()
+            moved = SE3.retract(x[:, None, None, :].expand(P, K, D, STATE_DIM), delta)
+            assembled = self._problem(moved.reshape(-1, STATE_DIM), control.expand(K * D))
+            problem_d = _select_slots(assembled, slots).reshape(P, K, D)
             v_next = solve_mode_unchecked(
-                problem_d, rows, initial_impulses=start, sync_free=True
+                problem_d, modes.unsqueeze(2).expand(P, K, D, -1), initial_impulses=start
             ).v_next
-            stepped = SE3.local(chart.repeat_interleave(D, dim=0), self._advance(moved, v_next))
-            primal, tangent = forward_ad.unpack_dual(stepped)
-        assert tangent is not None
-        F = tangent.reshape(P, K, D, D).transpose(-1, -2)
-        c = primal.reshape(P, K, D, D)[:, :, 0]
-        ok = converged.reshape(P, K)
+            stepped = self._advance(moved, v_next)  # (P, K, 12, 13)
+            local = SE3.local(chart.unsqueeze(2).expand_as(stepped), stepped)
+            (F,) = torch.autograd.grad(local.diagonal(dim1=-2, dim2=-1).sum(), delta)
+        c = local.detach()[:, :, 0]
         # Placeholders where the mode is ruled out (its weight is -inf): finite, harmless.
         eye = torch.eye(D, dtype=x.dtype, device=x.device)
-        F = torch.where(ok[..., None, None] & F.isfinite().all((-1, -2), keepdim=True), F, eye)
-        c = torch.where(ok[..., None] & c.isfinite().all(-1, keepdim=True), c, 0.0)
-        f = torch.where(ok[..., None], f.reshape(P, K, STATE_DIM), x[:, None, :])
-        return _Linearization(F=F, f=f, c=c, converged=ok, consistent=consistent.reshape(P, K))
+        F = torch.where(
+            converged[..., None, None] & F.isfinite().all(-1).all(-1)[..., None, None], F, eye
+        )
+        c = torch.where(converged[..., None] & c.isfinite().all(-1, keepdim=True), c, 0.0)
+        f = torch.where(converged[..., None], f, x.unsqueeze(1))
+        return _Linearization(F=F, f=f, c=c, converged=converged, consistent=consistent)
 
     def _consistent(self, problem: ContactProblem, modes: Tensor) -> Tensor:
-        """``(P,)`` bool: the mode's step is consistent with it once its contacts' gaps are
-        closed up to ``consistency_gap`` (see the class docstring)."""
+        """``(*B,)`` bool: the mode's step is consistent with it once its contacts' gaps are
+        closed up to ``consistency_gap`` (see the class docstring), on the slots that some
+        mode activates (a slot that none does would make every mode inconsistent alike)."""
         gap = self.consistency_gap
         phi = problem.phi
-        acting = modes >= 1
-        closed = torch.where(acting, phi - phi.clamp(-gap, gap), phi)
-        problem = ContactProblem.unchecked(
-            M=problem.M,
-            v=problem.v,
-            f=problem.f,
-            Jn=problem.Jn,
-            Jt=problem.Jt,
-            phi=closed,
-            mu=problem.mu,
-            h=problem.h,
-            mask=problem.slot_mask,
-            bn=problem.b_normal,
-            bt=problem.b_tangent,
-        )
+        closed = torch.where(modes >= 1, phi - phi.clamp(-gap, gap), phi)
+        problem = _with_phi(problem, closed)
         solution = solve_mode_unchecked(problem, modes)
         return is_consistent(problem, solution, atol=self.consistency_tolerance)
 
-    def _problem(self, x: Tensor, modes: Tensor, control: _Control) -> ContactProblem:
-        """The contact problem of flat states ``x (P, 13)`` under ``control`` (flat ``P``)."""
+    def _problem(self, x: Tensor, control: _Control) -> ContactProblem:
+        """The contact problem ``(P,)`` of flat states ``x (P, 13)`` under ``control``."""
+        P = x.shape[0]
         state = SceneState(
             q=x[:, None, :7],
             v=x[:, None, 7:],
             q_kinematic=control.q_kinematic.to(x.dtype),
-            mode=modes,
+            mode=torch.zeros(P, self.scene.num_slots, dtype=torch.long, device=x.device),
             q_robot=control.q_robot.to(x.dtype),
             v_robot=control.v_robot.to(x.dtype),
             robot_base=control.robot_base.to(x.dtype),
@@ -572,9 +560,17 @@ class SpatialContactModel:
         return problem
 
     def _advance(self, x: Tensor, v_next: Tensor) -> Tensor:
-        """``(P, 13)``: the pose integrated over the step with the twist ``v_next (P, 6)``."""
-        pose = integrate_poses(x[:, None, :7], v_next[:, None, :6], self.scene.h)[:, 0]
-        return torch.cat([pose, v_next[:, :6]], dim=-1)
+        """``(*P, 13)``: the pose integrated over the step with the twist ``v_next (*P, 6)``
+        (``x (*P', 13)`` broadcast against it)."""
+        batch = torch.broadcast_shapes(x.shape[:-1], v_next.shape[:-1])
+        x = x.expand(*batch, STATE_DIM)
+        pose = integrate_poses(x[..., None, :7], v_next[..., None, :6], self.scene.h)[..., 0, :]
+        return torch.cat([pose, v_next[..., :6]], dim=-1)
+
+    @property
+    def _acting_slots(self) -> Tensor:
+        """``(S_a,)`` long: the slots that some mode activates."""
+        return (self.modes >= 1).any(0).nonzero().squeeze(-1)
 
     # ------------------------------------------------------------------------------------------
     # tactile evidence
@@ -784,6 +780,45 @@ class SpatialContactModel:
             q_kinematic=q_kinematic,
             v_kinematic=out["v_kinematic"],
         )
+
+
+def _select_slots(problem: ContactProblem, slots: Tensor) -> ContactProblem:
+    """The problem ``(*B,)`` restricted to ``slots (S_a,)``."""
+    return ContactProblem.unchecked(
+        M=problem.M,
+        v=problem.v,
+        f=problem.f,
+        Jn=problem.Jn.index_select(-2, slots),
+        Jt=problem.Jt.index_select(-3, slots),
+        phi=problem.phi.index_select(-1, slots),
+        mu=problem.mu.index_select(-1, slots),
+        h=problem.h,
+        mask=problem.slot_mask.index_select(-1, slots),
+        bn=problem.b_normal.index_select(-1, slots),
+        bt=problem.b_tangent.index_select(-2, slots),
+    )
+
+
+def _per_mode(problem: ContactProblem, K: int) -> ContactProblem:
+    """A problem ``(P,)`` repeated for ``K`` modes: ``(P, K)`` (views)."""
+    return problem.map_tensors(lambda t: t.unsqueeze(1).expand(t.shape[0], K, *t.shape[1:]))
+
+
+def _with_phi(problem: ContactProblem, phi: Tensor) -> ContactProblem:
+    """The problem with the gaps ``phi``."""
+    return ContactProblem.unchecked(
+        M=problem.M,
+        v=problem.v,
+        f=problem.f,
+        Jn=problem.Jn,
+        Jt=problem.Jt,
+        phi=phi,
+        mu=problem.mu,
+        h=problem.h,
+        mask=problem.slot_mask,
+        bn=problem.b_normal,
+        bt=problem.b_tangent,
+    )
 
 
 def _check_state(x: object) -> None:
