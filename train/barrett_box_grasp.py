@@ -32,7 +32,7 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import matplotlib
 
@@ -43,6 +43,7 @@ import tyro
 from tqdm import tqdm
 
 from torchcontact.experiments import (
+    RBPF_METHODS,
     BarrettBoxGrasp,
     BoxEstimatorRuns,
     BoxTrials,
@@ -75,10 +76,14 @@ class Args(BarrettBoxGrasp):
     """parent of the run folders"""
     rbpf: bool = True
     """run the contact RBPF (and its ablation); without it pf gets rbpf_particles"""
+    projection: bool = True
+    """run the RBPF with the projection out of contact (the rbpf row); the ablation runs always"""
+    proposal: Literal["all_modes", "bootstrap"] = "all_modes"
+    """the RBPF's proposal"""
     train_trials: int = 16
     """training trials whose rollouts give the RBPF's modes and transition"""
-    rbpf_particles: int = 64
-    """RBPF particles (and pf_same_n's)"""
+    rbpf_particles: int = 0
+    """RBPF particles (and pf_same_n's); 0: the number of modes K (the RBPF needs N >= K)"""
     pf_particles: int = 0
     """plain PF particles; 0: as many as fit in the RBPF's CPU time per step"""
     fast: bool = False
@@ -93,7 +98,7 @@ def check_args(args: Args) -> None:
     """
     check_name("name", args.name)
     check_int("train_trials", args.train_trials, low=1)
-    check_int("rbpf_particles", args.rbpf_particles, low=1)
+    check_int("rbpf_particles", args.rbpf_particles, low=0)
     check_int("pf_particles", args.pf_particles, low=0)
     args.check()
 
@@ -115,7 +120,7 @@ def run(args: Args) -> dict[str, Any]:
             trials_per_box=1,
             train_trials=1,
             steps=12,
-            rbpf_particles=min(args.rbpf_particles, 2),
+            rbpf_particles=0,
             pf_particles=args.pf_particles or 2,
         )
     check_args(args)
@@ -129,6 +134,13 @@ def run(args: Args) -> dict[str, Any]:
             dataclasses.replace(args, trials=args.train_trials), seed=10_000 + args.seed
         )
         model = box_contact_model(args, train)
+        if args.rbpf_particles:
+            check_int(
+                "rbpf_particles",
+                args.rbpf_particles,
+                low=model.num_modes,
+                why="the number of modes K the training rollouts gave the RBPF",
+            )
     progress.update()
     run_dir = new_run_dir(out_dir=args.out_dir, name=args.name, seed=args.seed)
     log = RunLog(run_dir, args)
@@ -138,6 +150,8 @@ def run(args: Args) -> dict[str, Any]:
         rbpf_particles=args.rbpf_particles,
         pf_particles=args.pf_particles,
         model=model,
+        rbpf_methods=RBPF_METHODS if args.projection else RBPF_METHODS[1:],
+        proposal=args.proposal,
         seed=args.seed,
         done=lambda _: progress.update(),
     )
@@ -160,11 +174,12 @@ def run(args: Args) -> dict[str, Any]:
         "calibration": runs.calibration,
         "trials": trials.batch,
         "steps": trials.steps,
+        "modes": 0 if model is None else model.num_modes,
     }
     (run_dir / "results.json").write_text(
         json.dumps({"methods": records, **summary}, indent=2, default=str)
     )
-    write_results(run_dir / "results.md", args, trials, metrics, runs)
+    write_results(run_dir / "results.md", args, trials, metrics, runs, summary["modes"])
     save_figures(run_dir, trials, runs)
     log.steps_per_second(trials.batch * trials.steps * len(metrics), 0)
     log.close()
@@ -203,6 +218,7 @@ def write_results(
     trials: BoxTrials,
     metrics: dict[str, dict[str, float]],
     runs: BoxEstimatorRuns,
+    modes: int,
 ) -> None:
     """``results.md``: the setting, the table, the calibration and the targets."""
     tips = int((trials.tip_step >= 0).sum())
@@ -212,7 +228,13 @@ def write_results(
         f"{tips} of {trials.batch} trials tip over (tilt > 5°). Occluded from step "
         f"{int(trials.occluded.nonzero()[0])} on. Times: all trials batched on one thread, "
         "wall clock and this process's CPU time. Tip-over detection: the first step at which "
-        "the estimated tilt exceeds 5°, against the truth's.",
+        "the estimated tilt exceeds 5°, against the truth's."
+        + (
+            f" RBPF: {modes} modes from {args.train_trials} training trials, "
+            f"{args.proposal} proposal."
+            if modes
+            else ""
+        ),
         "",
         box_tracking_table(metrics),
     ]
@@ -221,8 +243,10 @@ def write_results(
             f"{n} → {1e3 * seconds / trials.steps:.0f}" for n, seconds in runs.calibration.items()
         )
         lines += ["", f"PF calibration (particles → CPU ms per step): {fitted}."]
-    if "rbpf" in metrics:
-        rbpf = metrics["rbpf"]
+    rbpf_method = next((m for m in RBPF_METHODS if m in metrics), None)
+    if rbpf_method is not None:
+        rbpf = metrics[rbpf_method]
+        lines += ["", f"Targets ({rbpf_method}):", ""]
         for key in ("pos_rmse_occ_mm", "rot_rmse_occ_deg"):
             best = min(metrics[m][key] for m in ("pf", "ekf", "camera") if m in metrics)
             lines.append(f"- {key}: RBPF / best baseline = {rbpf[key] / best:.3f} (target <= 0.5)")
@@ -231,6 +255,8 @@ def write_results(
         )
     else:
         lines += ["", "The RBPF did not run (`--no-rbpf`)."]
+    if args.rbpf and not args.projection:
+        lines += ["", "The RBPF with the projection (`rbpf`) did not run (`--no-projection`)."]
     path.write_text("\n".join(lines) + "\n")
 
 

@@ -65,6 +65,7 @@ from torchcontact.experiments._barrett_box import (
     palm_ik,
 )
 from torchcontact.experiments._barrett_box_estimators import (
+    RBPF_METHODS,
     BoxEstimatorRuns,
     box_contact_model,
     box_filter_scene,
@@ -203,6 +204,7 @@ __all__ = [
     "LOCATION",
     "NUM_BELIEF_FEATURES",
     "PAD_LINKS",
+    "RBPF_METHODS",
     "SETTINGS",
     "STATISTICS_COLUMNS",
     "TIP_ANGLE",

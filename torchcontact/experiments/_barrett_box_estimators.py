@@ -40,6 +40,7 @@ from torchcontact.filters import (
     RBPF,
     SE3,
     Gaussian,
+    Proposal,
     RobotControl,
     SimulatorParticleFilter,
     SpatialContactModel,
@@ -57,6 +58,8 @@ from torchcontact.states import TactileArray
 PF_NOISE_STD = (5e-4, 5e-4, 5e-4, 5e-3, 5e-3, 5e-3, 0.01, 0.01, 0.01, 0.2, 0.2, 0.2)
 #: Per-step process noise std of the RBPF's modes, in the same tangent.
 RBPF_NOISE_STD = (2e-4, 2e-4, 2e-4, 2e-3, 2e-3, 2e-3, 5e-3, 5e-3, 5e-3, 0.05, 0.05, 0.05)
+#: The RBPF methods: with the projection out of contact, and without (the ablation).
+RBPF_METHODS = ("rbpf", "rbpf_no_projection")
 #: The prior's std: position (m), rotation (rad), linear and angular velocity.
 PRIOR_STD = (0.005, 0.005, 0.005, 0.035, 0.035, 0.035, 0.01, 0.01, 0.01, 0.1, 0.1, 0.1)
 
@@ -225,10 +228,12 @@ def run_box_rbpf(
     *,
     prior: Gaussian,
     projection: bool,
+    proposal: Proposal = "all_modes",
     gap_sigma: float = 1e-4,
     trial: int = 0,
 ) -> dict[str, Tensor]:
-    """The contact RBPF (all-modes proposal) with the pads' per-mode evidence and, with
+    """The contact RBPF (``proposal``: every mode of every particle, or modes drawn from the
+    transition) with the pads' per-mode evidence and, with
     ``projection``, every particle's Gaussian projected out of the bodies it penetrates
     after each step (:func:`~torchcontact.filters.project_out_of_contact`).
 
@@ -237,7 +242,7 @@ def run_box_rbpf(
         contact-state probabilities (the mode marginals summed over the modes in each
         state), ``cloud`` ``(T, N, 7)`` and ``cloud_weight`` ``(T, N)`` of trial ``trial``.
     """
-    rbpf = RBPF(model, num_particles, proposal="all_modes")  # type: ignore[arg-type]
+    rbpf = RBPF(model, num_particles, proposal=proposal)  # type: ignore[arg-type]
     belief = rbpf.init(prior)
     mode_states = pair_states(model.modes, pair_slots(model.scene))  # (K, P)
     one_hot = torch.nn.functional.one_hot(mode_states, 3).to(F64)  # (K, P, 3)
@@ -295,27 +300,39 @@ def run_box_estimators(
     rbpf_particles: int,
     pf_particles: int,
     model: SpatialContactModel | None = None,
+    rbpf_methods: tuple[str, ...] = RBPF_METHODS,
+    proposal: Proposal = "all_modes",
     seed: int = 0,
     done: Callable[[str], None] | None = None,
 ) -> BoxEstimatorRuns:
     """Run every estimator on the trials, timed (this process's CPU time and wall clock).
 
-    ``rbpf`` and ``rbpf_no_projection`` run when ``model`` is given. ``pf_same_n`` has
-    ``rbpf_particles`` particles; ``pf`` has ``pf_particles`` if it is positive, else as many
-    as fit in the RBPF's CPU time per step (fitted through timed runs, as
-    :func:`~torchcontact.experiments.calibrate_pf` does for the triangle; without the RBPF,
-    ``rbpf_particles``). Every filter starts from the same prior (:func:`box_prior`) and
-    draws from its own generator (``seed`` plus an offset).
+    With ``model``, the RBPF methods of ``rbpf_methods`` (of :data:`RBPF_METHODS`: ``rbpf``
+    with the projection out of contact, ``rbpf_no_projection`` without) run with
+    ``rbpf_particles`` particles (0: the model's number of modes ``K``), and ``pf_same_n``
+    with as many. ``pf`` has ``pf_particles`` if it is positive, else as many as fit in the
+    first RBPF method's CPU time per step (a line through timed runs with 2 and 8
+    particles, then a run at its solution); without the RBPF, ``rbpf_particles``. Every
+    filter starts from the same prior (:func:`box_prior`) and draws from its own generator
+    (``seed`` plus an offset).
 
     Args:
         settings: the settings.
         trials: the trials.
-        rbpf_particles: the RBPF's particle count (and ``pf_same_n``'s).
+        rbpf_particles: the RBPF's particle count (and ``pf_same_n``'s), or 0.
         pf_particles: the plain PF's, or 0 (see above).
         model: the RBPF's model (:func:`box_contact_model`), or None.
+        rbpf_methods: which RBPF methods to run.
+        proposal: the RBPF's proposal.
         seed: the seed of the filters' draws.
         done: called with each method's name as it finishes (e.g. a progress bar).
+
+    Raises:
+        ValueError: ``rbpf_methods`` names an unknown method.
     """
+    unknown = [m for m in rbpf_methods if m not in RBPF_METHODS]
+    if unknown:
+        raise ValueError(f"rbpf_methods: expected names among {RBPF_METHODS}, got {unknown}")
 
     def generator(offset: int) -> torch.Generator:
         return torch.Generator().manual_seed(seed + offset)
@@ -328,35 +345,38 @@ def run_box_estimators(
     outputs: dict[str, dict[str, Tensor]] = {}
     timings: dict[str, Timing] = {}
     particles: dict[str, int] = {}
-    if model is not None:
-        for offset, (method, projection) in enumerate(
-            (("rbpf", True), ("rbpf_no_projection", False)), start=2
-        ):
+    if model is not None and rbpf_particles == 0:
+        rbpf_particles = model.num_modes
+    for method in rbpf_methods if model is not None else ():
+        offset = 2 + RBPF_METHODS.index(method)
 
-            def rbpf_run(projection: bool = projection, offset: int = offset) -> dict[str, Tensor]:
-                assert model is not None
-                return run_box_rbpf(
-                    model,
-                    trials,
-                    rbpf_particles,
-                    generator(offset),
-                    prior=prior,
-                    projection=projection,
-                )
+        def rbpf_run(
+            projection: bool = method == "rbpf", offset: int = offset
+        ) -> dict[str, Tensor]:
+            assert model is not None
+            return run_box_rbpf(
+                model,
+                trials,
+                rbpf_particles,
+                generator(offset),
+                prior=prior,
+                projection=projection,
+                proposal=proposal,
+            )
 
-            outputs[method], timings[method] = timed(rbpf_run)
-            particles[method] = rbpf_particles
-            report(method)
+        outputs[method], timings[method] = timed(rbpf_run)
+        particles[method] = rbpf_particles
+        report(method)
     calibration: dict[int, float] = {}
 
     def pf_run(n: int) -> tuple[dict[str, Tensor], Timing]:
         return timed(lambda: run_box_pf(trials, settings, n, generator(4), prior=prior))
 
-    if pf_particles > 0 or "rbpf" not in timings:
+    if pf_particles > 0 or not timings:
         n = pf_particles if pf_particles > 0 else rbpf_particles
         outputs["pf"], timings["pf"] = pf_run(n)
     else:
-        target = timings["rbpf"].cpu
+        target = next(iter(timings.values())).cpu
         runs = {n: pf_run(n) for n in (2, 8)}
         calibration = {n: run[1].cpu for n, run in runs.items()}
         slope = max((calibration[8] - calibration[2]) / 6, 1e-9)
@@ -367,11 +387,12 @@ def run_box_estimators(
         outputs["pf"], timings["pf"] = runs[n]
     particles["pf"] = n
     report("pf")
-    outputs["pf_same_n"], timings["pf_same_n"] = timed(
-        lambda: run_box_pf(trials, settings, rbpf_particles, generator(5), prior=prior)
-    )
-    particles["pf_same_n"] = rbpf_particles
-    report("pf_same_n")
+    if timings.keys() - {"pf"}:
+        outputs["pf_same_n"], timings["pf_same_n"] = timed(
+            lambda: run_box_pf(trials, settings, rbpf_particles, generator(5), prior=prior)
+        )
+        particles["pf_same_n"] = rbpf_particles
+        report("pf_same_n")
     outputs["ekf"], timings["ekf"] = timed(lambda: run_box_ekf(trials, settings, prior))
     report("ekf")
     outputs["camera"], timings["camera"] = timed(lambda: run_box_camera(trials, prior))
