@@ -24,7 +24,14 @@ from torchcontact.experiments import (
     box_trials,
     pair_states,
 )
-from torchcontact.filters import SE3, Gaussian, RobotControl, SimulatorParticleFilter
+from torchcontact.filters import (
+    SE3,
+    Gaussian,
+    KinematicControl,
+    RobotControl,
+    SimulatorParticleFilter,
+    SimulatorPFBelief,
+)
 from torchcontact.geometry import quat_to_matrix
 from torchcontact.robots import load
 from torchcontact.sim import Simulator
@@ -256,3 +263,68 @@ def test_the_script_runs_with_a_tiny_budget(tmp_path: Path) -> None:
         assert (run_dir / name).is_file(), name
     assert set(result["metrics"]) == {"pf", "pf_same_n", "ekf", "camera"}
     assert result["metrics"]["pf"]["pos_rmse_mm"] < 50.0
+
+
+def test_spatial_particle_mean_treats_q_and_minus_q_as_one_rotation() -> None:
+    """Two particles holding the same rotation as q and −q, and a third turned 20° about z
+    with half the weight of each: the mean rotation is the chordal mean, 4° about z here
+    (weights 0.4, 0.4, 0.2 of the unit quaternions at 0° and 20°, normalized), not a
+    cancelled sum."""
+    q = torch.tensor(about_z(0.0), dtype=F64)
+    turned = torch.tensor(about_z(20.0), dtype=F64)
+    rows = [
+        torch.cat([torch.zeros(3, dtype=F64), r, torch.zeros(6, dtype=F64)])
+        for r in (q, -q, turned)
+    ]
+    weights = torch.tensor([0.4, 0.4, 0.2], dtype=F64)
+    belief = SimulatorPFBelief(
+        particles=torch.stack(rows)[None],
+        modes=torch.zeros(1, 3, 4, dtype=torch.long),
+        log_weights=weights.log()[None],
+        log_evidence=torch.zeros(1, dtype=F64),
+        stepped=True,
+    )
+    mean = belief.mean()[0, 3:7]
+    chordal = 0.8 * q + 0.2 * turned
+    expected = chordal / chordal.norm()
+    torch.testing.assert_close(mean * torch.sign(mean[0]), expected, rtol=0, atol=1e-12)
+    # the chordal mean's angle, from its half-angle components
+    angle = 2 * math.degrees(math.atan2(float(expected[3]), float(expected[0])))
+    assert angle == pytest.approx(
+        2
+        * math.degrees(
+            math.atan2(0.2 * math.sin(math.radians(10)), 0.8 + 0.2 * math.cos(math.radians(10)))
+        )
+    )
+
+
+def test_spatial_particle_filter_rejects_a_planar_control() -> None:
+    robot = load("wam7_bhand")
+    scene = barrett_box_scene(
+        (0.03, 0.025, 0.05), 0.3, 0.5, barrett_member(robot, mode="kinematic")
+    )
+    with pytest.raises(ValueError, match=r"^process_std"):
+        SimulatorParticleFilter(
+            scene,
+            2,
+            process_std=torch.zeros(6, dtype=F64),
+            measurement_std=torch.ones(6, dtype=F64),
+        )
+    with pytest.raises(ValueError, match=r"^scene: the filter's robots must be kinematic"):
+        SimulatorParticleFilter(
+            barrett_box_scene((0.03, 0.025, 0.05), 0.3, 0.5, barrett_member(robot)),
+            2,
+            process_std=torch.zeros(12, dtype=F64),
+            measurement_std=torch.ones(6, dtype=F64),
+        )
+    pf = SimulatorParticleFilter(
+        scene, 2, process_std=torch.zeros(12, dtype=F64), measurement_std=torch.ones(6, dtype=F64)
+    )
+    mean = torch.tensor([[-0.6, 0.0, 1.0, 1.0, 0.0, 0.0, 0.0, *[0.0] * 6]], dtype=F64)
+    belief = pf.init(Gaussian(mean, 1e-4 * torch.eye(12, dtype=F64)[None]))
+    y = torch.full((1, 7), math.nan, dtype=F64)
+    control = KinematicControl(q=torch.zeros(1, 0, 3, dtype=F64), v=torch.zeros(1, 0, 3, dtype=F64))
+    with pytest.raises(ValueError, match=r"^control: expected a RobotControl"):
+        pf.step(belief, y, control=control)
+    with pytest.raises(ValueError, match=r"^y"):
+        pf.step(belief, y[:, :3], control=control)
