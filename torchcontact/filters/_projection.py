@@ -6,14 +6,29 @@ import dataclasses
 
 from torch import Tensor
 
-from torchcontact._checks import check_batched, check_real
+from torchcontact._checks import check_batched, check_real, describe
+from torchcontact.filters._gaussian import unchecked_gaussian
 from torchcontact.filters._kalman import kf_update
+from torchcontact.filters._manifold import SE3
 from torchcontact.filters._rbpf_belief import RBPFBelief
+from torchcontact.filters._spatial_contact_model import (
+    STATE_DIM,
+    TANGENT_DIM,
+    RobotControl,
+    check_control,
+    robot_contact_problem,
+)
+from torchcontact.geometry import quat_to_matrix
 from torchcontact.sim import Scene, penetration
 
 
 def project_out_of_contact(
-    belief: RBPFBelief, scene: Scene, q_kinematic: Tensor, *, gap_sigma: float
+    belief: RBPFBelief,
+    scene: Scene,
+    q_kinematic: Tensor | None = None,
+    *,
+    gap_sigma: float,
+    control: RobotControl | None = None,
 ) -> RBPFBelief:
     r"""Project every particle's Gaussian out of the bodies its mean penetrates.
 
@@ -37,12 +52,23 @@ def project_out_of_contact(
     :math:`\phi_s = 0` and the covariance collapses along the rows :math:`J_s`. Particles
     that penetrate nothing, the weights, the modes and the evidence are unchanged.
 
+    Spatial scenes (a :class:`~torchcontact.filters.SpatialContactModel`'s belief on SE(3),
+    the state ``(p, q, v, ω)``): the gaps and rows are those of
+    :func:`~torchcontact.sim.contact_problem` at each particle's mean under the robots'
+    ``control``, the update runs in the tangent at the mean (:math:`J_s = (n,\ (r \times
+    n)^\top R)` along :math:`(\delta p, \delta\theta)`, ``R`` the body's rotation) and
+    its result is retracted onto the manifold.
+
     Args:
         belief: an RBPF belief, batch ``(*B,)`` with ``N`` particles whose state begins with
-            the pose ``(x, y, θ)`` (world frame) of ``scene``'s one dynamic body.
+            the pose ``(x, y, θ)`` (world frame) of ``scene``'s one dynamic body (spatial:
+            the 13-dim state on SE(3)).
         scene: the filter's scene (one dynamic body).
-        q_kinematic: ``(*B, Nk, 3)`` kinematic-body poses (world frame) at the belief's time.
+        q_kinematic: ``(*B, Nk, 3)`` kinematic-body poses (world frame) at the belief's time
+            (planar scenes).
         gap_sigma: ``σ``, the pseudo-measurement's noise std, metres, ``> 0``.
+        control: the robots' joint positions and base poses (and kinematic bodies' poses) at
+            the belief's time, batch ``*B`` (spatial scenes; their velocities are not used).
 
     Returns:
         The belief with projected Gaussians.
@@ -60,6 +86,10 @@ def project_out_of_contact(
     gap_sigma = check_real("gap_sigma", gap_sigma, low=0.0, low_open=True)
     if not isinstance(scene, Scene) or len(scene.dynamic) != 1:
         raise ValueError("scene: expected a Scene with one dynamic body")
+    if scene.dimension == 3:
+        return _project_spatial(belief, scene, control, gap_sigma)
+    if not isinstance(q_kinematic, Tensor):
+        raise ValueError(f"q_kinematic: required for a planar scene, got {describe(q_kinematic)}")
     g = belief.gaussians
     batch, N, n = belief.batch_shape, belief.num_particles, g.dim
     if n < 3:
@@ -83,3 +113,43 @@ def project_out_of_contact(
         g, g.mean.new_zeros(*batch, N, m), H=H, d=d, R=R, mask=penetrating[..., slots]
     )
     return dataclasses.replace(belief, gaussians=projected)
+
+
+def _project_spatial(
+    belief: RBPFBelief, scene: Scene, control: RobotControl | None, gap_sigma: float
+) -> RBPFBelief:
+    """:func:`project_out_of_contact` of a belief on SE(3) (see there)."""
+    g = belief.gaussians
+    batch, N = belief.batch_shape, belief.num_particles
+    if g.dim != STATE_DIM or g.tangent_dim != TANGENT_DIM:
+        raise ValueError(
+            f"belief: expected states (p, q, v, ω) on SE(3), n = {STATE_DIM} with a "
+            f"{TANGENT_DIM}-dim tangent, got n = {g.dim}, d = {g.tangent_dim}"
+        )
+    flat = g.mean.reshape(-1, STATE_DIM)
+    P = flat.shape[0]
+    ctrl = check_control(scene, control, batch, flat.dtype, flat.device)
+    # Every particle of a batch entry shares its control.
+    problem, geometry = robot_contact_problem(scene, flat, ctrl.expand(N))
+    phi, Jn = geometry.phi, problem.Jn[..., :6]  # (P, S) unclamped gaps, (P, S, 6)
+    penetrating = geometry.active & (phi < 0)
+    slots = penetrating.any(0).nonzero().squeeze(-1)
+    if slots.numel() == 0:
+        return belief
+    m = int(slots.numel())
+    rotation = quat_to_matrix(flat[:, 3:7])  # (P, 3, 3): body to world
+    rows = Jn[:, slots]
+    H = flat.new_zeros(P, m, TANGENT_DIM)
+    H[..., :3] = rows[..., :3]
+    H[..., 3:6] = rows[..., 3:] @ rotation  # ∂φ/∂δθ = (r × n)ᵀ R
+    d = phi[:, slots]
+    R = flat.new_full((m,), gap_sigma**2).diag()
+    tangent = unchecked_gaussian(
+        flat.new_zeros(P, TANGENT_DIM), g.cov.reshape(P, TANGENT_DIM, TANGENT_DIM)
+    )
+    projected, _ = kf_update(
+        tangent, flat.new_zeros(P, m), H=H, d=d, R=R, mask=penetrating[:, slots]
+    )
+    mean = SE3.retract(flat, projected.mean)
+    gaussians = unchecked_gaussian(mean.reshape(g.mean.shape), projected.cov.reshape(g.cov.shape))
+    return dataclasses.replace(belief, gaussians=gaussians)

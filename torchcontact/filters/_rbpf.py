@@ -302,7 +302,8 @@ class RBPF:
         Args:
             belief: the belief at ``t - 1`` (from :meth:`init` or :meth:`step`).
             y: ``(*B', m)`` measurement at ``t``, broadcast to the batch ``*B``. NaN in every
-                component means "no measurement" (likelihood 1 for every particle).
+                component means "no measurement" (likelihood 1 for every particle); for a
+                measurement on a manifold (the model's ``measurement_manifold``), NaN in any.
             action: the action that selects the transition matrix of an action-dependent model:
                 an int or a ``(*B',)`` long tensor in ``[0, A)``; must be None for a ``(K, K)``
                 transition.
@@ -312,7 +313,8 @@ class RBPF:
             control: the model's control input of this step (e.g. the finger poses and
                 twists of a :class:`~torchcontact.filters.PlanarContactModel`); None for a
                 :class:`LinearSwitchingModel`.
-            mask: ``(*B', m)`` bool, the measurement components used (see ``kf_update``).
+            mask: ``(*B', m)`` bool, the measurement components used (see ``kf_update``); for
+                a measurement on a manifold, ``(*B', k)`` over its tangent components.
             generator: random source, for reproducible runs; torch's default if None.
 
         Returns:
@@ -328,7 +330,7 @@ class RBPF:
         y = check_tensor("y", y, event_shape=(m,), like=like, allow_nan=True)
         shapes: list[tuple[str, Sequence[int]]] = [("belief", batch), ("y", y.shape[:-1])]
         if mask is not None:
-            mask = check_mask("mask", mask, size=m)
+            mask = check_mask("mask", mask, size=self._dims[1])
             shapes.append(("mask", mask.shape[:-1]))
         extra = None
         if extra_log_likelihood is not None:

@@ -24,7 +24,7 @@ from torchcontact.filters._manifold import SE3
 from torchcontact.filters._mode_gate import check_gate, gate_log_weight
 from torchcontact.filters._rbpf_belief import RBPFBelief
 from torchcontact.filters._switching import LinearSwitchingModel, ModeDynamics
-from torchcontact.geometry import quat_to_matrix
+from torchcontact.geometry import SlotGeometry, quat_to_matrix
 from torchcontact.sim import Rollout, Scene, SceneState, contact_problem, integrate_poses
 from torchcontact.states import ContactSet, PartnerKind, TactileArray
 
@@ -158,8 +158,15 @@ class SpatialContactModel:
     (``initial_impulses``), where its iterated Tikhonov iterations are a fixed point, so the
     derivative is that of the converged system (the implicit-function derivative, whose
     iterates converge as the solve's own), not that of a finite number of iterations from
-    zero, which differs at redundant contacts. The discrete choices of the geometry (each
-    slot's closest features, the candidate slots) are held.
+    zero, which differs at redundant contacts. This is exact wherever the mode's equalities
+    fix the step (sticking redundant corners, a box sliding on four corners: the friction rows
+    share the normal rows' redundancy; tested against finite differences). Where they do
+    not, i.e. the step depends on how ``solve_mode`` splits the impulses among redundant
+    rows (a finger's sticking friction that could carry part of the weight of a box sliding
+    on its corners), the Jacobian is that of the steps whose split stays nearest the
+    converged one, not of ``solve_mode``'s own split rule. The discrete choices of the
+    geometry (each slot's closest features, the candidate slots, the friction directions'
+    hemisphere of :func:`~torchcontact.sim.tangent_basis`) are held.
 
     Modes ruled out. A mode whose equalities contradict each other at :math:`\bar x` (its
     ``solve_mode`` does not converge) gets the log-weight :math:`-\infty` for the step
@@ -396,7 +403,7 @@ class SpatialContactModel:
         mean = belief.mean()
         batch = mean.shape[:-1]
         flat = mean.reshape(-1, STATE_DIM).detach().to(torch.float64)
-        ctrl = self._control(control, batch)
+        ctrl = check_control(self.scene, control, batch, device=self.device)
         likely = belief.mode_marginals().reshape(-1, self.num_modes).argmax(-1)
         lin = self._linearize(flat, ctrl, chart_mode=likely)
         K, dtype = self.num_modes, self.dtype
@@ -441,10 +448,10 @@ class SpatialContactModel:
         if bool(((mode < 0) | (mode >= self.num_modes)).any()):
             raise ValueError(f"mode: ids must lie in [0, {self.num_modes})")
         batch = torch.broadcast_shapes(x.shape[:-1], mode.shape)
-        ctrl = self._control(control, batch, x.dtype)
+        ctrl = check_control(self.scene, control, batch, x.dtype, self.device)
         modes = self.modes[mode.expand(batch)].reshape(-1, self.scene.num_slots)
         flat = x.expand(*batch, STATE_DIM).reshape(-1, STATE_DIM)
-        v_next = solve_mode(self._problem(flat, ctrl), modes).v_next
+        v_next = solve_mode(robot_contact_problem(self.scene, flat, ctrl)[0], modes).v_next
         return self._advance(flat, v_next).reshape(*batch, STATE_DIM)
 
     def linearize(
@@ -463,7 +470,7 @@ class SpatialContactModel:
         """
         _check_state(x)
         batch = x.shape[:-1]
-        ctrl = self._control(control, batch)
+        ctrl = check_control(self.scene, control, batch, device=self.device)
         lin = self._linearize(x.reshape(-1, STATE_DIM).detach().to(torch.float64), ctrl)
         K = self.num_modes
         return (
@@ -486,31 +493,42 @@ class SpatialContactModel:
         P, K, D = x.shape[0], self.num_modes, TANGENT_DIM
         slots = self._acting_slots.to(x.device)
         modes = self.modes.to(x.device).index_select(1, slots).expand(P, K, -1)
+        # One assembly: a batch of P·K·12 points retract(x, δ), δ = 0 requiring grad, whose
+        # values are the problems at x (in every mode) and whose derivatives along δ are
+        # taken by reverse-mode differentiation (faster here than forward mode): replica
+        # (p, k, i) yields row i of mode k's Jacobian at point p.
+        with torch.enable_grad():
+            delta = x.new_zeros(P, K, D, D).requires_grad_()
+            moved = SE3.retract(x[:, None, None, :].expand(P, K, D, STATE_DIM), delta)
+            assembled, _ = robot_contact_problem(
+                self.scene, moved.reshape(-1, STATE_DIM), control.expand(K * D)
+            )
+            problem_d = _select_slots(assembled, slots).reshape(P, K, D)
         with torch.no_grad():
-            problem = _per_mode(_select_slots(self._problem(x, control), slots), K)
-            solution = solve_mode_unchecked(problem, modes)
+            problem = problem_d.map_tensors(lambda t: t[:, :, 0].detach())  # (P, K) at x
+            if self.inconsistency_penalty > 0:
+                # The step and the consistency check's (gaps closed) in one solve.
+                closed = self._closed_gaps(problem, modes)
+                both = solve_mode_unchecked(_stack(problem, closed), torch.stack([modes, modes]))
+                solution = both.map_tensors(lambda t: t[0])
+                consistent = is_consistent(
+                    closed, both.map_tensors(lambda t: t[1]), atol=self.consistency_tolerance
+                )
+            else:
+                solution = solve_mode_unchecked(problem, modes)
+                consistent = torch.ones_like(solution.status.converged)
             f = self._advance(x.unsqueeze(1), solution.v_next)  # (P, K, 13)
             converged = solution.status.converged
-            consistent = torch.ones_like(converged)
-            if self.inconsistency_penalty > 0:
-                consistent = self._consistent(problem, modes)
         if chart_mode is None:
             chart = f
         else:
             chart = f.gather(1, chart_mode.to(x.device)[:, None, None].expand(P, 1, STATE_DIM))
-        # The derivative along the 12 tangent directions, by reverse-mode differentiation
-        # (faster here than forward mode) of a batch of P·K·12 steps warm-started at the
-        # converged impulses (see the class docstring): replica (p, k, i) yields row i of
-        # mode k's Jacobian at point p.
+        # The mode solves warm-started at the converged impulses (see the class docstring).
         start = (
             solution.pn.unsqueeze(2).expand(P, K, D, -1),
             solution.pt.unsqueeze(2).expand(P, K, D, *solution.pt.shape[-2:]),
         )
         with torch.enable_grad():
-            delta = x.new_zeros(P, K, D, D).requires_grad_()
-            moved = SE3.retract(x[:, None, None, :].expand(P, K, D, STATE_DIM), delta)
-            assembled = self._problem(moved.reshape(-1, STATE_DIM), control.expand(K * D))
-            problem_d = _select_slots(assembled, slots).reshape(P, K, D)
             v_next = solve_mode_unchecked(
                 problem_d, modes.unsqueeze(2).expand(P, K, D, -1), initial_impulses=start
             ).v_next
@@ -527,37 +545,12 @@ class SpatialContactModel:
         f = torch.where(converged[..., None], f, x.unsqueeze(1))
         return _Linearization(F=F, f=f, c=c, converged=converged, consistent=consistent)
 
-    def _consistent(self, problem: ContactProblem, modes: Tensor) -> Tensor:
-        """``(*B,)`` bool: the mode's step is consistent with it once its contacts' gaps are
-        closed up to ``consistency_gap`` (see the class docstring), on the slots that some
-        mode activates (a slot that none does would make every mode inconsistent alike)."""
-        gap = self.consistency_gap
-        phi = problem.phi
-        closed = torch.where(modes >= 1, phi - phi.clamp(-gap, gap), phi)
-        problem = _with_phi(problem, closed)
-        solution = solve_mode_unchecked(problem, modes)
-        return is_consistent(problem, solution, atol=self.consistency_tolerance)
-
-    def _problem(self, x: Tensor, control: _Control) -> ContactProblem:
-        """The contact problem ``(P,)`` of flat states ``x (P, 13)`` under ``control``."""
-        P = x.shape[0]
-        state = SceneState(
-            q=x[:, None, :7],
-            v=x[:, None, 7:],
-            q_kinematic=control.q_kinematic.to(x.dtype),
-            mode=torch.zeros(P, self.scene.num_slots, dtype=torch.long, device=x.device),
-            q_robot=control.q_robot.to(x.dtype),
-            v_robot=control.v_robot.to(x.dtype),
-            robot_base=control.robot_base.to(x.dtype),
-        )
-        problem, _ = contact_problem(
-            self.scene,
-            state,
-            control=None if control.v_kinematic is None else control.v_kinematic.to(x.dtype),
-            joint_command=control.v_robot.to(x.dtype) if self.scene.robots else None,
-            base_twist=None if control.base_twist is None else control.base_twist.to(x.dtype),
-        )
-        return problem
+    def _closed_gaps(self, problem: ContactProblem, modes: Tensor) -> ContactProblem:
+        """The problem of the consistency check: the gaps of the mode's contacts closed up to
+        ``consistency_gap`` (see the class docstring). It runs on the slots that some mode
+        activates (a slot that none does would make every mode inconsistent alike)."""
+        gap, phi = self.consistency_gap, problem.phi
+        return _with_phi(problem, torch.where(modes >= 1, phi - phi.clamp(-gap, gap), phi))
 
     def _advance(self, x: Tensor, v_next: Tensor) -> Tensor:
         """``(*P, 13)``: the pose integrated over the step with the twist ``v_next (*P, 6)``
@@ -612,21 +605,12 @@ class SpatialContactModel:
             )
         batch = torch.broadcast_shapes(pose.shape[:-1], readings.shape[:-1])
         P = math.prod(batch)
-        ctrl = self._control(control, batch)
+        ctrl = check_control(self.scene, control, batch, device=self.device)
         x = torch.cat(
             [pose.to(torch.float64).expand(*batch, 7).reshape(P, 7), pose.new_zeros(P, 6).double()],
             dim=-1,
         )
-        state = SceneState(
-            q=x[:, None, :7],
-            v=x[:, None, 7:],
-            q_kinematic=ctrl.q_kinematic,
-            mode=torch.zeros(P, self.scene.num_slots, dtype=torch.long, device=x.device),
-            q_robot=ctrl.q_robot,
-            v_robot=ctrl.v_robot,
-            robot_base=ctrl.robot_base,
-        )
-        _, geometry = contact_problem(self.scene, state)
+        _, geometry = robot_contact_problem(self.scene, x, ctrl)
         acting, which = self._acting_sets  # (U, S), (K,)
         U = acting.shape[0]
         log_lik = x.new_zeros(P, U)
@@ -709,78 +693,6 @@ class SpatialContactModel:
         origin = (turn @ transform[:, :3, 3:]).squeeze(-1) + base[:, :3]
         return origin, turn @ transform[:, :3, :3]
 
-    def _control(
-        self, control: RobotControl | None, batch: torch.Size, dtype: torch.dtype = torch.float64
-    ) -> _Control:
-        """The control checked and broadcast to the flat batch ``(prod(batch),)``."""
-        scene = self.scene
-        Nj, R, Nk = scene.num_robot_joints, len(scene.robots), len(scene.kinematic)
-        P = math.prod(batch)
-        device = self.device
-        if control is None:
-            if Nj or Nk:
-                raise ValueError("control: required, the scene has robots or kinematic bodies")
-            control = RobotControl(
-                q_robot=torch.zeros(0, dtype=dtype), v_robot=torch.zeros(0, dtype=dtype)
-            )
-        if not isinstance(control, RobotControl):
-            raise ValueError(f"control: expected a RobotControl, got {type(control).__name__}")
-        bases = [member.base_pose for member in scene.robots]
-        default_base = (
-            torch.stack([b for b in bases if b is not None]) if R else torch.zeros(0, 7)
-        ).to(dtype=dtype, device=device)
-        fields: dict[str, tuple[Tensor | None, tuple[int, ...], bool]] = {
-            "q_robot": (control.q_robot, (Nj,), True),
-            "v_robot": (control.v_robot, (Nj,), True),
-            "robot_base": (control.robot_base, (R, 7), False),
-            "base_twist": (control.base_twist, (R, 6), False),
-            "q_kinematic": (control.q_kinematic, (Nk, 7), Nk > 0),
-            "v_kinematic": (control.v_kinematic, (Nk, 6), False),
-        }
-        out: dict[str, Tensor | None] = {}
-        for name, (value, event, required) in fields.items():
-            if value is None:
-                if required:
-                    raise ValueError(f"control.{name}: required for this scene")
-                out[name] = None
-                continue
-            if (
-                not isinstance(value, Tensor)
-                or not value.is_floating_point()
-                or tuple(value.shape[value.ndim - len(event) :]) != event
-                or value.ndim < len(event)
-            ):
-                raise ValueError(
-                    f"control.{name}: expected a floating (*B, {', '.join(map(str, event))}) "
-                    f"tensor, got {describe(value)}"
-                )
-            if not bool(torch.isfinite(value).all()):
-                raise ValueError(f"control.{name}: contains NaN or inf")
-            try:
-                out[name] = value.to(dtype).expand(*batch, *event).reshape(P, *event)
-            except RuntimeError as err:
-                raise ValueError(
-                    f"control.{name}: batch {tuple(value.shape[: value.ndim - len(event)])} "
-                    f"does not broadcast to {tuple(batch)}"
-                ) from err
-        robot_base = out["robot_base"]
-        if robot_base is None:
-            robot_base = default_base.expand(P, R, 7)
-        q_kinematic = out["q_kinematic"]
-        if q_kinematic is None:
-            q_kinematic = torch.zeros(P, 0, 7, dtype=dtype, device=device)
-        q_robot, v_robot = out["q_robot"], out["v_robot"]
-        assert q_robot is not None
-        assert v_robot is not None
-        return _Control(
-            q_robot=q_robot,
-            v_robot=v_robot,
-            robot_base=robot_base,
-            base_twist=out["base_twist"],
-            q_kinematic=q_kinematic,
-            v_kinematic=out["v_kinematic"],
-        )
-
 
 def _select_slots(problem: ContactProblem, slots: Tensor) -> ContactProblem:
     """The problem ``(*B,)`` restricted to ``slots (S_a,)``."""
@@ -802,6 +714,15 @@ def _select_slots(problem: ContactProblem, slots: Tensor) -> ContactProblem:
 def _per_mode(problem: ContactProblem, K: int) -> ContactProblem:
     """A problem ``(P,)`` repeated for ``K`` modes: ``(P, K)`` (views)."""
     return problem.map_tensors(lambda t: t.unsqueeze(1).expand(t.shape[0], K, *t.shape[1:]))
+
+
+def _stack(first: ContactProblem, second: ContactProblem) -> ContactProblem:
+    """Two problems of batch ``*B`` as one of batch ``(2, *B)``."""
+    names = ("M", "v", "f", "Jn", "Jt", "phi", "mu", "mask", "bn", "bt")
+    a = {name: getattr(first, name) for name in names}
+    b = {name: getattr(second, name) for name in names}
+    stacked = {name: torch.stack([a[name], b[name].expand_as(a[name])]) for name in names}
+    return ContactProblem.unchecked(h=first.h, **stacked)
 
 
 def _with_phi(problem: ContactProblem, phi: Tensor) -> ContactProblem:
@@ -830,3 +751,103 @@ def _check_state(x: object) -> None:
     norm = torch.linalg.vector_norm(x[..., 3:7], dim=-1)
     if bool(((norm - 1).abs() > 1e-6).any()):
         raise ValueError("x: the quaternion x[..., 3:7] must have unit norm")
+
+
+def robot_contact_problem(
+    scene: Scene, x: Tensor, control: _Control
+) -> tuple[ContactProblem, SlotGeometry]:
+    """The contact problem ``(P,)`` of the tracked body's flat states ``x (P, 13)`` in
+    ``scene`` under ``control``, and its slot geometry (unclamped gaps)."""
+    P = x.shape[0]
+    state = SceneState(
+        q=x[:, None, :7],
+        v=x[:, None, 7:],
+        q_kinematic=control.q_kinematic.to(x.dtype),
+        mode=torch.zeros(P, scene.num_slots, dtype=torch.long, device=x.device),
+        q_robot=control.q_robot.to(x.dtype),
+        v_robot=control.v_robot.to(x.dtype),
+        robot_base=control.robot_base.to(x.dtype),
+    )
+    return contact_problem(
+        scene,
+        state,
+        control=None if control.v_kinematic is None else control.v_kinematic.to(x.dtype),
+        joint_command=control.v_robot.to(x.dtype) if scene.robots else None,
+        base_twist=None if control.base_twist is None else control.base_twist.to(x.dtype),
+    )
+
+
+def check_control(
+    scene: Scene,
+    control: RobotControl | None,
+    batch: torch.Size,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | None = None,
+) -> _Control:
+    """A :class:`RobotControl` of ``scene`` checked and broadcast to the flat batch
+    ``(prod(batch),)``, in ``dtype`` (``ValueError`` naming the field at fault)."""
+    Nj, R, Nk = scene.num_robot_joints, len(scene.robots), len(scene.kinematic)
+    P = math.prod(batch)
+    if control is None:
+        if Nj or Nk:
+            raise ValueError("control: required, the scene has robots or kinematic bodies")
+        control = RobotControl(
+            q_robot=torch.zeros(0, dtype=dtype), v_robot=torch.zeros(0, dtype=dtype)
+        )
+    if not isinstance(control, RobotControl):
+        raise ValueError(f"control: expected a RobotControl, got {type(control).__name__}")
+    bases = [member.base_pose for member in scene.robots]
+    default_base = (
+        torch.stack([b for b in bases if b is not None]) if R else torch.zeros(0, 7)
+    ).to(dtype=dtype, device=device)
+    fields: dict[str, tuple[Tensor | None, tuple[int, ...], bool]] = {
+        "q_robot": (control.q_robot, (Nj,), True),
+        "v_robot": (control.v_robot, (Nj,), True),
+        "robot_base": (control.robot_base, (R, 7), False),
+        "base_twist": (control.base_twist, (R, 6), False),
+        "q_kinematic": (control.q_kinematic, (Nk, 7), Nk > 0),
+        "v_kinematic": (control.v_kinematic, (Nk, 6), False),
+    }
+    out: dict[str, Tensor | None] = {}
+    for name, (value, event, required) in fields.items():
+        if value is None:
+            if required:
+                raise ValueError(f"control.{name}: required for this scene")
+            out[name] = None
+            continue
+        if (
+            not isinstance(value, Tensor)
+            or not value.is_floating_point()
+            or tuple(value.shape[value.ndim - len(event) :]) != event
+            or value.ndim < len(event)
+        ):
+            raise ValueError(
+                f"control.{name}: expected a floating (*B, {', '.join(map(str, event))}) "
+                f"tensor, got {describe(value)}"
+            )
+        if not bool(torch.isfinite(value).all()):
+            raise ValueError(f"control.{name}: contains NaN or inf")
+        try:
+            out[name] = value.to(dtype).expand(*batch, *event).reshape(P, *event)
+        except RuntimeError as err:
+            raise ValueError(
+                f"control.{name}: batch {tuple(value.shape[: value.ndim - len(event)])} "
+                f"does not broadcast to {tuple(batch)}"
+            ) from err
+    robot_base = out["robot_base"]
+    if robot_base is None:
+        robot_base = default_base.expand(P, R, 7)
+    q_kinematic = out["q_kinematic"]
+    if q_kinematic is None:
+        q_kinematic = torch.zeros(P, 0, 7, dtype=dtype, device=device)
+    q_robot, v_robot = out["q_robot"], out["v_robot"]
+    assert q_robot is not None
+    assert v_robot is not None
+    return _Control(
+        q_robot=q_robot,
+        v_robot=v_robot,
+        robot_base=robot_base,
+        base_twist=out["base_twist"],
+        q_kinematic=q_kinematic,
+        v_kinematic=out["v_kinematic"],
+    )

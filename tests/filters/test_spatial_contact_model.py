@@ -1,0 +1,570 @@
+"""The spatial contact model and the RBPF on SE(3), against independent references: central
+finite differences on the manifold (Richardson-extrapolated) for the per-mode Jacobians, the
+SE(3) EKF (``ekf_predict``/``ekf_update`` with a closed-form free-flight step) for the RBPF
+with one mode and no contact, exact enumeration for the tactile likelihood, closed-form
+weighted means of rotations about one axis for the Karcher mixture mean."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+
+import pytest
+import torch
+from torch import Tensor
+
+from torchcontact.filters import (
+    RBPF,
+    SE3,
+    Gaussian,
+    RobotControl,
+    SpatialContactModel,
+    ekf_predict,
+    ekf_update,
+    project_out_of_contact,
+)
+from torchcontact.geometry import Box, HalfSpace, Sphere, quat_exp, quat_mul, quat_to_matrix
+from torchcontact.robots import load
+from torchcontact.sim import Body, RobotMember, Scene, Simulator, contact_problem
+from torchcontact.states import TactileArray
+
+DT = torch.float64
+H = 0.01
+#: Half extents of the tracked box, metres.
+HALF = (0.02, 0.02, 0.03)
+#: The hand upside down (palm facing down); its palm face lies 0.084 m below its base.
+HAND_DOWN = (0.0, 1.0, 0.0, 0.0)
+PALM_DEPTH = 0.084
+
+
+def hand_scene(*, height: float, cube: bool = False) -> Scene:
+    """The box on the table under a kinematic BarrettHand whose base is at ``height``."""
+    base = torch.tensor([0.0, 0.0, height, *HAND_DOWN], dtype=DT)
+    member = RobotMember("hand", load("bhand"), mode="kinematic", base_pose=base)
+    half = (0.025, 0.025, 0.025) if cube else HALF
+    box = Body("box", Box(half), mass=0.3)
+    table = Body("table", HalfSpace.ground(), kind="static")
+    return Scene(bodies=(table, box), robots=(member,), friction=0.5, friction_directions=4, h=H)
+
+
+def finger_scene() -> Scene:
+    """The box on the table and a kinematic ball (a finger) against its −x face."""
+    box = Body("box", Box(HALF), mass=0.3)
+    table = Body("table", HalfSpace.ground(), kind="static")
+    finger = Body("finger", Sphere(0.01), kind="kinematic")
+    return Scene(bodies=(table, box, finger), friction=0.4, friction_directions=4, h=H)
+
+
+def state(position: tuple[float, float, float], twist: tuple[float, ...] = (0.0,) * 6) -> Tensor:
+    """``(13,)`` the box at ``position``, unrotated, with ``twist``."""
+    return torch.tensor([*position, 1.0, 0.0, 0.0, 0.0, *twist], dtype=DT)
+
+
+def simulated_mode(scene: Scene, x: Tensor, **inputs: Tensor) -> Tensor:
+    """``(S,)`` the contact mode of the simulator's (Lemke's) step from ``x``."""
+    simulator = Simulator(scene)
+    kinematic = inputs.pop("q_kinematic", None)
+    control = inputs.pop("control", None)
+    joint_command = inputs.pop("joint_command", None)
+    base_twist = inputs.pop("base_twist", None)
+    start = simulator.initial_state(
+        q=x[None, None, :7],
+        v=x[None, None, 7:],
+        q_kinematic=kinematic,
+        **inputs,
+    )
+    result = simulator.step(start, control, joint_command=joint_command, base_twist=base_twist)
+    return result.mode[0]
+
+
+def model_of(scene: Scene, modes: Tensor, **options: object) -> SpatialContactModel:
+    K = modes.shape[0]
+    return SpatialContactModel(
+        scene=scene,
+        modes=modes,
+        Q=1e-8 * torch.eye(12, dtype=DT),
+        R=torch.diag(torch.tensor([25e-6] * 3 + [1.2e-3] * 3, dtype=DT)),
+        transition=torch.full((K, K), 1.0 / K, dtype=DT),
+        **options,  # type: ignore[arg-type]
+    )
+
+
+def finite_difference_jacobian(
+    model: SpatialContactModel, x: Tensor, mode: int, control: RobotControl | None
+) -> Tensor:
+    """``(12, 12)`` central differences of ``δ ↦ local(f(x), f(retract(x, δ)))``,
+    Richardson-extrapolated (error O(ε⁴))."""
+    ids = torch.tensor(mode)
+    base = model.step(x, mode=ids, control=control)
+
+    def along(delta: Tensor) -> Tensor:
+        return SE3.local(base, model.step(SE3.retract(x, delta), mode=ids, control=control))
+
+    def central(eps: float) -> Tensor:
+        columns = []
+        for j in range(12):
+            e = torch.zeros(12, dtype=DT)
+            e[j] = eps
+            columns.append((along(e) - along(-e)) / (2 * eps))
+        return torch.stack(columns, dim=-1)
+
+    eps = 1e-4
+    return (4 * central(eps / 2) - central(eps)) / 3
+
+
+def assert_jacobian_matches(
+    model: SpatialContactModel, x: Tensor, control: RobotControl, *, relative: float = 1e-7
+) -> None:
+    F, f, converged = model.linearize(x, control=control)
+    assert bool(converged.all())
+    for k in range(model.num_modes):
+        expected = finite_difference_jacobian(model, x, k, control)
+        # Rounding of the steps (1e-15 relative) over 2ε = 1e-4 bounds the difference error at
+        # ~1e-10 of the largest entry (100: the gap term 1/h); the derivative's Tikhonov
+        # iterates converge to ~1e-9 of it.
+        scale = float(expected.abs().max())
+        torch.testing.assert_close(F[k], expected, rtol=0.0, atol=relative * scale)
+        # The linearization solves on the slots some mode activates, the step on all.
+        torch.testing.assert_close(
+            f[k], model.step(x, mode=torch.tensor(k), control=control), rtol=0.0, atol=1e-10
+        )
+
+
+def test_jacobian_of_a_box_resting_on_redundant_corners() -> None:
+    """Four coplanar sticking corners (a singular, consistent system) and the free flight,
+    under a hand far above: the exact Jacobian equals finite differences on the manifold."""
+    scene = hand_scene(height=0.4)
+    control = RobotControl(q_robot=torch.zeros(4, dtype=DT), v_robot=torch.zeros(4, dtype=DT))
+    x = state((0.0, 0.0, HALF[2]), (0.01, -0.02, 0.0, 0.1, 0.05, -0.2))
+    mode = simulated_mode(scene, x, q_robot=control.q_robot[None])
+    assert int((mode[:4] >= 1).sum()) == 4  # the four bottom corners touch
+    modes = torch.stack([mode, torch.zeros_like(mode)])
+    assert_jacobian_matches(model_of(scene, modes), x, control)
+
+
+def sliding_along(scene: Scene, x: Tensor, slot: int, twist: Tensor, **inputs: Tensor) -> int:
+    """The sliding mode code ``2 + d`` of ``slot`` whose friction impulse (direction ``d``)
+    opposes the slip of a body moving with ``twist`` (``d`` minimizes ``Jt_d · twist``)."""
+    simulator = Simulator(scene)
+    control = inputs.pop("control", None)
+    base_twist = inputs.pop("base_twist", None)
+    start = simulator.initial_state(q=x[None, None, :7], v=x[None, None, 7:], **inputs)
+    problem, _ = contact_problem(scene, start, control=control, base_twist=base_twist)
+    return 2 + int((problem.Jt[0, slot] @ twist).argmin())
+
+
+def test_jacobian_of_a_box_pushed_by_a_finger() -> None:
+    """A ball pushing a box in the air along +x (off its centre: the box turns), sticking to
+    it or sliding along its face, and the box in free flight."""
+    scene = finger_scene()
+    # Turned (its faces' normals off the horizontal plane, across which the friction
+    # directions' basis switches hemispheres), the ball touching its −x face.
+    turn = quat_exp(torch.tensor([0.0, 0.2, 0.3], dtype=DT))
+    x = torch.cat([torch.tensor([0.0, 0.0, 0.2], dtype=DT), turn])
+    x = torch.cat([x, torch.tensor([0.05, 0.0, 0.01, 0.0, 0.3, 0.0], dtype=DT)])
+    offset = torch.tensor([-HALF[0] - 0.01, 0.005, 0.01], dtype=DT)
+    centre = x[:3] + quat_to_matrix(turn) @ offset
+    ball = torch.cat([centre, torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=DT)])[None]
+    push = torch.tensor([[0.2, 0.01, 0.0, 0.0, 0.0, 0.0]], dtype=DT)
+    finger = next(
+        g.start
+        for g in scene.slot_groups
+        if "finger" in (scene.bodies[g.other].name, scene.bodies[g.receiver].name)
+    )
+    inputs = {"q_kinematic": ball[None], "control": push[None]}
+    down = torch.tensor([0.0, 0.0, -1.0, 0.0, 0.0, 0.0], dtype=DT)
+    modes = torch.zeros(3, scene.num_slots, dtype=torch.long)
+    modes[0, finger] = 1
+    modes[1, finger] = sliding_along(scene, x, finger, down, **dict(inputs))
+    control = RobotControl(
+        q_robot=torch.zeros(0, dtype=DT),
+        v_robot=torch.zeros(0, dtype=DT),
+        q_kinematic=ball,
+        v_kinematic=push,
+    )
+    assert_jacobian_matches(model_of(scene, modes), x, control)
+
+
+def test_jacobian_of_a_box_sliding_on_redundant_corners() -> None:
+    """A box sliding along +x (and turning) on its four bottom corners: a singular system
+    whose friction rows share the normal rows' redundancy (the step is unique)."""
+    scene = finger_scene()
+    x = state((0.0, 0.0, HALF[2]), (0.3, 0.05, 0.0, 0.0, 0.0, 0.5))
+    ball = torch.tensor([[0.5, 0.5, 0.5, 1.0, 0.0, 0.0, 0.0]], dtype=DT)
+    forward = torch.tensor([1.0, 0.0, 0.0, 0.0, 0.0, 0.0], dtype=DT)
+    mode = torch.zeros(scene.num_slots, dtype=torch.long)
+    for corner in range(4):
+        mode[corner] = sliding_along(scene, x, corner, forward, q_kinematic=ball[None])
+    control = RobotControl(
+        q_robot=torch.zeros(0, dtype=DT), v_robot=torch.zeros(0, dtype=DT), q_kinematic=ball
+    )
+    assert_jacobian_matches(model_of(scene, mode[None]), x, control)
+
+
+def test_jacobian_of_a_box_dragged_by_the_palm() -> None:
+    """The hand's palm on the box top, moved sideways and turned by its base: the box sticks
+    to the palm on four corners and slides on the table on four (redundant on either side;
+    robot rows through the base twist)."""
+    scene = hand_scene(height=HALF[2] * 2 + PALM_DEPTH)
+    zeros = torch.zeros(4, dtype=DT)
+    twist = torch.tensor([[0.05, 0.02, 0.0, 0.0, 0.0, 0.1]], dtype=DT)
+    x = state((0.0, 0.0, HALF[2]))
+    inputs = {"q_robot": zeros[None], "base_twist": twist[None]}
+    mode = torch.zeros(scene.num_slots, dtype=torch.long)
+    for corner in range(4):
+        mode[corner] = sliding_along(scene, x, corner, twist[0], **dict(inputs))
+    mode[8:12] = 1  # the box corners under the palm's face
+    control = RobotControl(q_robot=zeros, v_robot=zeros, base_twist=twist)
+    # Tilting the box breaks the parallel faces of the sandwich: the step's spin ω_z jumps
+    # by ~1e-6 rad/s (solve_mode's split among the eight corners changes), so the central
+    # differences of ω_z along the tilts are off by up to ~5e-4 (5e-6 of the largest entry).
+    assert_jacobian_matches(model_of(scene, mode[None]), x, control, relative=2e-5)
+
+
+def free_flight(x: Tensor) -> Tensor:
+    """Closed-form step of a cube in free flight (isotropic inertia: no gyroscopic term):
+    ``v⁺ = v + h g``, ``p⁺ = p + h v⁺``, ``q⁺ = Exp(h ω) ⊗ q``."""
+    gravity = torch.tensor([0.0, 0.0, -9.81], dtype=x.dtype)
+    v = x[7:10] + H * gravity
+    q = quat_mul(quat_exp(H * x[10:13]), x[3:7])
+    return torch.cat([x[:3] + H * v, q / q.norm(), v, x[10:13]])
+
+
+def test_one_mode_without_contact_is_the_se3_ekf() -> None:
+    """One mode (every slot separated), a cube in free flight far above the table: every
+    particle of the RBPF is the EKF on SE(3), and the evidence its log-likelihoods, through
+    an occluded step (NaN) and a position-only one (mask)."""
+    scene = hand_scene(height=1.0, cube=True)
+    modes = torch.zeros(1, scene.num_slots, dtype=torch.long)
+    model = model_of(scene, modes)
+    control = RobotControl(q_robot=torch.zeros(4, dtype=DT), v_robot=torch.zeros(4, dtype=DT))
+    axis = torch.tensor([0.3, -0.2, 0.9], dtype=DT)
+    start = torch.cat(
+        [
+            torch.tensor([0.1, 0.2, 0.5], dtype=DT),
+            quat_exp(0.7 * axis / axis.norm()),
+            torch.tensor([0.2, -0.1, 0.3, 1.5, -2.0, 0.7], dtype=DT),
+        ]
+    )
+    spread = torch.linspace(1.0, 3.0, 12, dtype=DT)
+    prior = Gaussian(start, torch.diag(1e-4 * spread))
+    rbpf = RBPF(model, 3)
+    belief = rbpf.init(prior)
+    reference, log_evidence = prior, torch.zeros((), dtype=DT)
+    g = torch.Generator().manual_seed(0)
+    nan = torch.full((7,), math.nan, dtype=DT)
+    position_only = torch.tensor([True] * 3 + [False] * 3)
+    for t in range(5):
+        truth = free_flight(reference.mean)
+        noise = 0.01 * torch.randn(6, generator=g, dtype=DT)
+        y = nan if t == 2 else SE3.retract(truth[:7], noise)  # occluded at t = 2
+        mask = position_only if t == 3 else None  # the orientation unknown at t = 3
+        belief = rbpf.step(belief, y, control=control, mask=mask)
+        reference = ekf_predict(reference, free_flight, Q=model.Q, manifold=SE3)
+        reference, log_lik = ekf_update(
+            reference,
+            y,
+            lambda x: x[:7],
+            R=model.R,
+            mask=mask,
+            manifold=SE3,
+            measurement_manifold=SE3,
+        )
+        log_evidence = log_evidence + log_lik
+        for i in range(3):
+            torch.testing.assert_close(
+                belief.gaussians.mean[i], reference.mean, rtol=0.0, atol=1e-10
+            )
+            torch.testing.assert_close(
+                belief.gaussians.cov[i], reference.cov, rtol=1e-8, atol=1e-14
+            )
+        torch.testing.assert_close(belief.log_evidence, log_evidence, rtol=1e-9, atol=1e-9)
+
+
+def test_rbpf_keeps_unit_quaternions_while_the_box_tips() -> None:
+    """A spinning box pressed by the palm, 1,000 particles with spread orientations: every
+    particle's quaternion and the Karcher mean stay unit (to rounding)."""
+    scene = hand_scene(height=HALF[2] * 2 + PALM_DEPTH)
+    zeros = torch.zeros(4, dtype=DT)
+    twist = torch.tensor([[0.05, 0.0, -0.01, 0.0, 0.0, 0.5]], dtype=DT)
+    x = state((0.0, 0.0, HALF[2]), (0.0, 0.0, 0.0, 0.0, 0.0, 1.0))
+    mode = simulated_mode(scene, x, q_robot=zeros[None], base_twist=twist[None])
+    free = torch.zeros_like(mode)
+    model = model_of(scene, torch.stack([mode, free]))
+    control = RobotControl(q_robot=zeros, v_robot=zeros, base_twist=twist)
+    rbpf = RBPF(model, 1000, proposal="all_modes")
+    belief = rbpf.init(
+        Gaussian(x, torch.diag(torch.tensor([1e-6] * 3 + [0.05] * 3 + [1e-4] * 6, dtype=DT)))
+    )
+    generator = torch.Generator().manual_seed(1)
+    for _ in range(5):
+        y = x[:7] + 0.01 * torch.randn(7, generator=generator, dtype=DT)
+        y = torch.cat([y[:3], y[3:] / y[3:].norm()])
+        belief = rbpf.step(belief, y, control=control, generator=generator)
+        quaternions = belief.gaussians.mean[..., 3:7]
+        torch.testing.assert_close(
+            quaternions.norm(dim=-1), torch.ones(1000, dtype=DT), rtol=0.0, atol=1e-12
+        )
+        torch.testing.assert_close(
+            belief.mean()[3:7].norm(), torch.tensor(1.0, dtype=DT), rtol=0.0, atol=1e-12
+        )
+        assert bool(torch.isfinite(belief.log_evidence))
+
+
+def test_karcher_mean_of_rotations_about_one_axis() -> None:
+    """Particles turned about one axis by angles θ_i (some stored as −q, the same rotation):
+    the mixture mean turns by the weighted mean angle, positions and twists average."""
+    scene = hand_scene(height=1.0)
+    model = model_of(scene, torch.zeros(1, scene.num_slots, dtype=torch.long))
+    rbpf = RBPF(model, 4)
+    axis = torch.tensor([1.0, 2.0, -2.0], dtype=DT) / 3.0
+    angles = torch.tensor([0.1, -0.3, 0.5, 0.2], dtype=DT)
+    weights = torch.tensor([0.1, 0.4, 0.3, 0.2], dtype=DT)
+    quaternions = quat_exp(angles[:, None] * axis)
+    signs = torch.tensor([1.0, -1.0, 1.0, -1.0], dtype=DT)[:, None]
+    rest = torch.randn(4, 9, generator=torch.Generator().manual_seed(2), dtype=DT)
+    means = torch.cat([rest[:, :3], signs * quaternions, rest[:, 3:]], dim=-1)
+    belief = rbpf.init(Gaussian(means[0], torch.eye(12, dtype=DT)))
+    belief = dataclasses.replace(
+        belief, log_weights=weights.log(), gaussians=Gaussian(means, belief.gaussians.cov)
+    )
+    mean = belief.mean()
+    expected_rotation = quat_exp((weights * angles).sum() * axis)
+    turn = quat_mul(expected_rotation * torch.tensor([1.0, -1, -1, -1], dtype=DT), mean[3:7])
+    assert abs(abs(float(turn[0])) - 1.0) < 1e-12
+    torch.testing.assert_close(
+        mean[:3], (weights[:, None] * rest[:, :3]).sum(0), rtol=0, atol=1e-12
+    )
+    torch.testing.assert_close(
+        mean[7:], (weights[:, None] * rest[:, 3:]).sum(0), rtol=0, atol=1e-12
+    )
+
+
+def test_tactile_likelihood_is_normalized_and_reads_the_palm() -> None:
+    """Pads on the palm (two on the touched face, one away) and a finger link: for every
+    mode, the likelihood summed over all 2^4 readings is 1; with noise-free pads a mode that
+    touches the palm predicts exactly the pads under the box's corners."""
+    scene = hand_scene(height=HALF[2] * 2 + PALM_DEPTH)
+    palm_face = 0.084
+    positions = torch.tensor(
+        [[0.02, 0.02, palm_face], [0.0, 0.0, palm_face], [-0.04, 0.04, 0.0]], dtype=DT
+    )
+    normals = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]], dtype=DT)
+    palm = TactileArray(positions, normals, radius=0.005, half_angle=0.3)
+    noisy_palm = TactileArray(
+        positions, normals, radius=0.005, half_angle=0.3, false_positive=0.1, false_negative=0.2
+    )
+    finger = TactileArray(
+        torch.tensor([[0.03, 0.0, 0.0]], dtype=DT),
+        torch.tensor([[0.0, 0.0, 1.0]], dtype=DT),
+        radius=0.01,
+        half_angle=0.5,
+        false_positive=0.05,
+        false_negative=0.1,
+    )
+    touching = torch.zeros(scene.num_slots, dtype=torch.long)
+    touching[:4] = 1
+    touching[8:12] = 1
+    modes = torch.stack([touching, torch.zeros_like(touching)])
+    zeros = torch.zeros(4, dtype=DT)
+    control = RobotControl(q_robot=zeros, v_robot=zeros)
+    pose = state((0.0, 0.0, HALF[2]))[:7]
+    readings = torch.tensor(list(itertools.product([False, True], repeat=4)))
+    model = model_of(scene, modes, tactile={"bhand_palm": noisy_palm, "bhand_f1_inner": finger})
+    log_lik = model.tactile_log_likelihood(readings, pose=pose, control=control)  # (16, K)
+    torch.testing.assert_close(log_lik.exp().sum(0), torch.ones(2, dtype=DT), rtol=0, atol=1e-12)
+    # Noise-free: the palm's pad under the box corner (0.02, 0.02) (the hand is turned about x,
+    # so the corner (0.02, −0.02) of the world lies at (0.02, 0.02) in the palm frame) is on.
+    exact = model_of(scene, modes, tactile={"bhand_palm": palm})
+    expected = torch.tensor([True, False, False])
+    log_exact = exact.tactile_log_likelihood(
+        torch.stack([expected, torch.zeros(3, dtype=torch.bool)]), pose=pose, control=control
+    )
+    assert float(log_exact[0, 0]) == 0.0  # the touching mode predicts these readings
+    assert float(log_exact[0, 1]) == -math.inf  # the free mode cannot
+    assert float(log_exact[1, 1]) == 0.0
+
+
+def test_self_contradicting_mode_is_ruled_out() -> None:
+    """The box sticking to the table and to a ball that moves: the equalities contradict
+    each other, solve_mode does not converge, and the mode's log-weight is -inf."""
+    scene = finger_scene()
+    x = state((0.0, 0.0, HALF[2]))
+    ball = torch.tensor([[-HALF[0] - 0.01, 0.0, 0.01, 1.0, 0.0, 0.0, 0.0]], dtype=DT)
+    control = RobotControl(
+        q_robot=torch.zeros(0, dtype=DT),
+        v_robot=torch.zeros(0, dtype=DT),
+        q_kinematic=ball,
+        v_kinematic=torch.tensor([[0.3, 0.0, 0.0, 0.0, 0.0, 0.0]], dtype=DT),
+    )
+    stuck = torch.zeros(scene.num_slots, dtype=torch.long)
+    stuck[:4] = 1
+    finger_slots = [
+        s
+        for g in scene.slot_groups
+        if "finger" in (scene.bodies[g.other].name, scene.bodies[g.receiver].name)
+        for s in range(g.start, g.start + g.count)
+    ]
+    stuck[finger_slots] = 1
+    resting = torch.zeros_like(stuck)
+    resting[:4] = 1
+    model = model_of(scene, torch.stack([stuck, resting]))
+    _, _, converged = model.linearize(x, control=control)
+    assert converged.tolist() == [False, True]
+    belief = RBPF(model, 2).init(Gaussian(x, 1e-6 * torch.eye(12, dtype=DT)))
+    weights = model.mode_dynamics(belief, control).mode_log_weight
+    assert weights is not None
+    assert float(weights[0]) == -math.inf
+    assert math.isfinite(float(weights[1]))
+
+
+@pytest.mark.parametrize(
+    ("change", "name"),
+    [
+        ({"modes": torch.zeros(2, 3, dtype=torch.long)}, "modes"),
+        ({"modes": torch.full((1, 34), 99, dtype=torch.long)}, "modes"),
+        ({"Q": torch.eye(6, dtype=DT)}, "Q"),
+        ({"R": torch.eye(7, dtype=DT)}, "R"),
+        ({"R": -torch.eye(6, dtype=DT)}, "R"),
+        ({"transition": torch.ones(1, 1, dtype=DT) * 2}, "transition"),
+        ({"inconsistency_penalty": -1.0}, "inconsistency_penalty"),
+        ({"tactile": {"no_such_link": None}}, "tactile"),
+        ({"scene": "table"}, "scene"),
+    ],
+)
+def test_bad_fields_name_the_field(change: dict, name: str) -> None:
+    scene = hand_scene(height=1.0)
+    fields = {
+        "scene": scene,
+        "modes": torch.zeros(1, scene.num_slots, dtype=torch.long),
+        "Q": torch.eye(12, dtype=DT),
+        "R": torch.eye(6, dtype=DT),
+        "transition": torch.ones(1, 1, dtype=DT),
+    }
+    fields.update(change)
+    with pytest.raises(ValueError, match=name):
+        SpatialContactModel(**fields)
+
+
+def test_servo_robots_are_refused() -> None:
+    base = torch.tensor([0.0, 0.0, 1.0, *HAND_DOWN], dtype=DT)
+    member = RobotMember("hand", load("bhand"), mode="servo", base_pose=base)
+    box = Body("box", Box(HALF), mass=0.3)
+    scene = Scene(bodies=(Body("table", HalfSpace.ground(), kind="static"), box), robots=(member,))
+    with pytest.raises(ValueError, match="scene"):
+        model_of(scene, torch.zeros(1, scene.num_slots, dtype=torch.long))
+
+
+def test_bad_step_inputs_name_the_argument() -> None:
+    scene = hand_scene(height=1.0)
+    model = model_of(scene, torch.zeros(1, scene.num_slots, dtype=torch.long))
+    x = state((0.0, 0.0, 0.5))
+    zeros = torch.zeros(4, dtype=DT)
+    control = RobotControl(q_robot=zeros, v_robot=zeros)
+    mode = torch.tensor(0)
+    with pytest.raises(ValueError, match="x"):
+        model.step(x[:12], mode=mode, control=control)
+    with pytest.raises(ValueError, match="x"):
+        model.step(torch.cat([x[:3], 2 * x[3:7], x[7:]]), mode=mode, control=control)
+    with pytest.raises(ValueError, match="mode"):
+        model.step(x, mode=torch.tensor(1), control=control)
+    with pytest.raises(ValueError, match="control"):
+        model.step(x, mode=mode)
+    with pytest.raises(ValueError, match=r"control\.q_robot"):
+        model.step(x, mode=mode, control=RobotControl(q_robot=zeros[:3], v_robot=zeros))
+    nan = RobotControl(q_robot=zeros, v_robot=torch.full((4,), math.nan, dtype=DT))
+    with pytest.raises(ValueError, match=r"control\.v_robot"):
+        model.step(x, mode=mode, control=nan)
+    with pytest.raises(ValueError, match="readings"):
+        model.tactile_log_likelihood(torch.zeros(3), pose=x[:7], control=control)
+    with pytest.raises(ValueError, match="pose"):
+        model.tactile_log_likelihood(torch.zeros(0, dtype=torch.bool), pose=x[:6], control=control)
+
+
+def test_projection_lifts_a_box_out_of_the_table() -> None:
+    """A box 5 mm into the table, isotropic tangent covariance p: the four bottom corners'
+    pseudo-measurements 0 = φ + δz ± b δθx ∓ a δθy (+ e, var σ²) decouple z, whose posterior
+    is the closed-form scalar update var = 1 / (1/p + 4/σ²), δz = var · 4 · 5 mm / σ²; the
+    orientation and twist keep their means."""
+    scene = hand_scene(height=1.0)
+    model = model_of(scene, torch.zeros(1, scene.num_slots, dtype=torch.long))
+    depth, p, sigma = 0.005, 1e-4, 1e-3
+    x = state((0.01, -0.02, HALF[2] - depth), (0.1, 0.0, 0.0, 0.0, 0.0, 0.2))
+    belief = RBPF(model, 2).init(Gaussian(x, p * torch.eye(12, dtype=DT)))
+    zeros = torch.zeros(4, dtype=DT)
+    control = RobotControl(q_robot=zeros, v_robot=zeros)
+    projected = project_out_of_contact(belief, scene, gap_sigma=sigma, control=control)
+    var = 1.0 / (1.0 / p + 4.0 / sigma**2)
+    lifted = x.clone()
+    lifted[2] += var * 4.0 * depth / sigma**2
+    for i in range(2):
+        torch.testing.assert_close(projected.gaussians.mean[i], lifted, rtol=0.0, atol=1e-12)
+        torch.testing.assert_close(
+            projected.gaussians.cov[i, 2, 2], torch.tensor(var, dtype=DT), rtol=1e-9, atol=0.0
+        )
+    # Nothing penetrates: the belief comes back unchanged.
+    above = RBPF(model, 2).init(Gaussian(state((0.0, 0.0, 0.2)), p * torch.eye(12, dtype=DT)))
+    assert project_out_of_contact(above, scene, gap_sigma=sigma, control=control) is above
+
+
+def test_from_rollout_counts_the_visited_modes() -> None:
+    """Boxes dropped onto the table: the table is the distinct mode vectors the simulator
+    visited (counted here with a Python set), the first-mode distribution and the
+    transitions their smoothed frequencies."""
+    scene = hand_scene(height=0.6)
+    simulator = Simulator(scene)
+    q = torch.tensor(
+        [
+            [[0.0, 0.0, HALF[2] + 0.002, 1.0, 0.0, 0.0, 0.0]],
+            [[0.1, 0.0, HALF[2], 1.0, 0.0, 0.0, 0.0]],
+        ],
+        dtype=DT,
+    )
+    v = torch.tensor([[[0.0, 0.0, 0.0, 0.0, 0.0, 0.0]], [[0.3, 0.0, 0.0, 0.0, 0.0, 0.0]]], dtype=DT)
+    start = simulator.initial_state(q=q, v=v, q_robot=torch.zeros(2, 4, dtype=DT))
+    rollout = simulator.rollout(start, steps=6)
+    seen = {tuple(m.tolist()) for m in rollout.mode.reshape(-1, scene.num_slots)}
+    smoothing = 0.1
+    model = SpatialContactModel.from_rollout(
+        scene,
+        rollout,
+        Q=1e-8 * torch.eye(12, dtype=DT),
+        R=1e-4 * torch.eye(6, dtype=DT),
+        smoothing=smoothing,
+    )
+    assert {tuple(m.tolist()) for m in model.modes} == seen
+    assert model.num_modes == len(seen) >= 2
+    K = model.num_modes
+    rows = {tuple(m.tolist()): k for k, m in enumerate(model.modes)}
+    first = [rows[tuple(m.tolist())] for m in rollout.mode[0]]
+    expected = torch.full((K,), smoothing, dtype=DT)
+    for k in first:
+        expected[k] += 1
+    torch.testing.assert_close(model.initial, expected / expected.sum(), rtol=1e-12, atol=0.0)
+    counts = torch.full((K, K), smoothing, dtype=DT)
+    for b in range(2):
+        path = [rows[tuple(m.tolist())] for m in rollout.mode[:, b]]
+        for i, j in itertools.pairwise(path):
+            counts[i, j] += 1
+    torch.testing.assert_close(
+        model.transition, counts / counts.sum(-1, keepdim=True), rtol=1e-12, atol=0.0
+    )
+
+
+def test_bad_filter_inputs_name_the_argument() -> None:
+    """The RBPF on SE(3): a prior with an ambient (13, 13) covariance, a camera pose of six
+    numbers, a mask over the seven ambient components."""
+    scene = hand_scene(height=1.0)
+    model = model_of(scene, torch.zeros(1, scene.num_slots, dtype=torch.long))
+    rbpf = RBPF(model, 2)
+    x = state((0.0, 0.0, 0.5))
+    with pytest.raises(ValueError, match="prior"):
+        rbpf.init(Gaussian(x, torch.eye(13, dtype=DT)))
+    belief = rbpf.init(Gaussian(x, 1e-4 * torch.eye(12, dtype=DT)))
+    zeros = torch.zeros(4, dtype=DT)
+    control = RobotControl(q_robot=zeros, v_robot=zeros)
+    with pytest.raises(ValueError, match="y"):
+        rbpf.step(belief, x[:6], control=control)
+    with pytest.raises(ValueError, match="mask"):
+        rbpf.step(belief, x[:7], control=control, mask=torch.ones(7, dtype=torch.bool))
