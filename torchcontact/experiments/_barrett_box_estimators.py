@@ -244,6 +244,8 @@ def run_box_rbpf(
     """
     rbpf = RBPF(model, num_particles, proposal=proposal)  # type: ignore[arg-type]
     belief = rbpf.init(prior)
+    assert trials.truth.q_robot is not None
+    q_robot = trials.truth.q_robot
     mode_states = pair_states(model.modes, pair_slots(model.scene))  # (K, P)
     one_hot = torch.nn.functional.one_hot(mode_states, 3).to(F64)  # (K, P, 3)
     poses, probs, clouds, cloud_weights = [], [], [], []
@@ -256,12 +258,9 @@ def run_box_rbpf(
             belief, trials.y[t], extra_log_likelihood=extra, control=control, generator=gen
         )
         if projection:
-            belief = project_out_of_contact(
-                belief,
-                model.scene,
-                control,  # type: ignore[arg-type]
-                gap_sigma=gap_sigma,
-            )
+            # the robot where the step leaves it: the belief's time
+            after = RobotControl(q_robot=q_robot[t + 1], v_robot=control.v_robot)
+            belief = project_out_of_contact(belief, model.scene, gap_sigma=gap_sigma, control=after)
         poses.append(belief.mean()[..., :7])
         probs.append(torch.einsum("bk,kpc->bpc", belief.mode_marginals().to(F64), one_hot))
         clouds.append(belief.gaussians.mean[trial, :, :7].clone())
