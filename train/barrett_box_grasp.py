@@ -8,6 +8,8 @@ finger to touch tips the box over about its bottom edge before the grasp closes,
 it slides into the grasp or is grasped cleanly. A Kinect-like camera (5 mm, 2°) sees the box
 until the fingers start closing (occluded from then on, by phase); the BarrettHand's tactile
 pads read contacts with false positives and negatives; the robot's joint angles are known.
+The filters assume the nominal mass and friction, and know each box's size (a camera measures
+it before the grasp; ``--no-known-size``: the nominal size too).
 
 Estimators (:func:`~torchcontact.experiments.run_box_estimators`), all batched over trials:
 ``rbpf`` (the spatial contact RBPF, all-modes proposal: with few modes every mode of every
@@ -15,7 +17,7 @@ particle is predicted exactly, no sampling noise in the mode; projection out of 
 after each step), ``rbpf_no_projection`` (ablation), ``pf`` (the simulator particle filter
 with as many particles as fit in the RBPF's CPU time per step), ``pf_same_n`` (the RBPF's
 particle count), ``ekf`` (constant velocity on SE(3), no contact) and ``camera`` (the last
-pose seen). The filters assume the nominal box.
+pose seen).
 
 Usage::
 
@@ -80,6 +82,9 @@ class Args(BarrettBoxGrasp):
     """run the RBPF with the projection out of contact (the rbpf row); the ablation runs always"""
     proposal: Literal["all_modes", "bootstrap"] = "all_modes"
     """the RBPF's proposal"""
+    known_size: bool = True
+    """the filters know each box's size (measured by the camera before the grasp); mass and
+    friction are nominal either way"""
     train_trials: int = 16
     """training trials whose rollouts give the RBPF's modes and transition"""
     rbpf_particles: int = 0
@@ -152,6 +157,7 @@ def run(args: Args) -> dict[str, Any]:
         model=model,
         rbpf_methods=RBPF_METHODS if args.projection else RBPF_METHODS[1:],
         proposal=args.proposal,
+        known_size=args.known_size,
         seed=args.seed,
         done=lambda _: progress.update(),
     )
@@ -234,6 +240,11 @@ def write_results(
             f"{args.proposal} proposal."
             if modes
             else ""
+        )
+        + (
+            " The filters know each box's size (nominal mass and friction)."
+            if args.known_size
+            else " The filters assume the nominal size, mass and friction."
         ),
         "",
         box_tracking_table(metrics),

@@ -438,6 +438,27 @@ class BoxTrials:
         """``(T, B, 7)`` the box's true pose after each step."""
         return self.truth.q[1:, :, 0]
 
+    def subset(self, index: Tensor) -> BoxTrials:
+        """The trials ``index`` ``(B',)`` long (their groups keep indexing :attr:`scenes`)."""
+        truth = Rollout(
+            **{name: getattr(self.truth, name)[:, index] for name in Rollout.__dataclass_fields__}
+        )
+        return BoxTrials(
+            truth=truth,
+            scenes=self.scenes,
+            group=self.group[index],
+            half_extents=self.half_extents[index],
+            mass=self.mass[index],
+            friction=self.friction[index],
+            commands=self.commands,
+            states=self.states[:, index],
+            y=self.y[:, index],
+            readings=self.readings[:, index],
+            triggers=self.triggers[:, index],
+            occluded=self.occluded,
+            tip_step=self.tip_step[index],
+        )
+
 
 def box_tilt(pose: Tensor) -> Tensor:
     """``(*B,)`` angle (rad) between the body z axis of ``(*B, 7)`` poses and world z."""

@@ -17,6 +17,8 @@ step) and velocities (over the step) are the known control.
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -64,10 +66,13 @@ RBPF_METHODS = ("rbpf", "rbpf_no_projection")
 PRIOR_STD = (0.005, 0.005, 0.005, 0.035, 0.035, 0.035, 0.01, 0.01, 0.01, 0.1, 0.1, 0.1)
 
 
-def box_filter_scene(settings: BarrettBoxGrasp) -> Scene:
-    """The filters' scene: the nominal box on the table and the kinematic robot."""
+def box_filter_scene(
+    settings: BarrettBoxGrasp, half_extents: tuple[float, float, float] | None = None
+) -> Scene:
+    """The filters' scene: the box (nominal mass and friction; the given size, else the
+    nominal one) on the table and the kinematic robot."""
     return barrett_box_scene(
-        settings.nominal_half_extents(),
+        settings.nominal_half_extents() if half_extents is None else half_extents,
         settings.nominal_mass(),
         settings.nominal_friction(),
         barrett_member(load("wam7_bhand"), mode="kinematic"),
@@ -129,9 +134,11 @@ def run_box_pf(
     gen: torch.Generator,
     *,
     prior: Gaussian,
+    half_extents: tuple[float, float, float] | None = None,
     trial: int = 0,
 ) -> dict[str, Tensor]:
-    """The simulator particle filter on every trial (batch ``B × N``).
+    """The simulator particle filter on every trial (batch ``B × N``), on
+    :func:`box_filter_scene` with ``half_extents``.
 
     Returns:
         ``pose`` ``(T, B, 7)`` (the weighted mean, :meth:`SimulatorPFBelief.mean`),
@@ -139,7 +146,7 @@ def run_box_pf(
         state over the particles' simulated modes), ``cloud`` ``(T, N, 7)`` and
         ``cloud_weight`` ``(T, N)`` of trial ``trial``.
     """
-    scene = box_filter_scene(settings)
+    scene = box_filter_scene(settings, half_extents)
     slots = pair_slots(scene)
     pads = hand_pads(settings, scene.robots[0].robot)
     pf = SimulatorParticleFilter(
@@ -209,7 +216,9 @@ def run_box_camera(trials: BoxTrials, prior: Gaussian) -> dict[str, Tensor]:
 def box_contact_model(settings: BarrettBoxGrasp, train: BoxTrials) -> SpatialContactModel:
     """The RBPF's switching model on :func:`box_filter_scene`: the modes and transition of the
     training trials' rollouts, process noise :data:`RBPF_NOISE_STD`, the camera's noise and
-    the hand's pads."""
+    the hand's pads. Modes inconsistent at the linearization point are ruled out
+    (``inconsistency_penalty=inf``): with a finite penalty, modes whose fingers drag the box
+    from a distance keep enough weight to carry it away while the camera is occluded."""
     scene = box_filter_scene(settings)
     return SpatialContactModel.from_rollout(
         scene,
@@ -217,6 +226,7 @@ def box_contact_model(settings: BarrettBoxGrasp, train: BoxTrials) -> SpatialCon
         Q=torch.diag(torch.tensor(RBPF_NOISE_STD, dtype=F64).pow(2)),
         R=torch.diag(settings.camera_std().pow(2)),
         tactile=hand_pads(settings, scene.robots[0].robot),
+        inconsistency_penalty=math.inf,
     )
 
 
@@ -292,6 +302,35 @@ class BoxEstimatorRuns:
     calibration: dict[int, float]
 
 
+#: An estimator's run on a group of trials: ``(trials, prior, box half extents or None)``.
+GroupRun = Callable[[BoxTrials, Gaussian, tuple[float, float, float] | None], dict[str, Tensor]]
+
+
+def _by_group(
+    trials: BoxTrials, prior: Gaussian, known_size: bool, run: GroupRun
+) -> dict[str, Tensor]:
+    """``run(trials, prior, half_extents)`` on each group of trials with the group's box size
+    (``known_size``) or once on all of them with the nominal size (``None``); per-trial
+    outputs (``pose``, ``state_probs``) concatenated in trial order, the rest (the particle
+    cloud of the first trial) from the first group."""
+    if not known_size:
+        return run(trials, prior, None)
+    parts, order = [], []
+    for group in torch.unique(trials.group).tolist():
+        index = (trials.group == group).nonzero().squeeze(-1)
+        half = trials.half_extents[index[0]].tolist()
+        parts.append(run(trials.subset(index), prior[index], (half[0], half[1], half[2])))
+        order.append(index)
+    inverse = torch.argsort(torch.cat(order))
+    joined = {}
+    for key, value in parts[0].items():
+        if key in ("pose", "state_probs"):
+            joined[key] = torch.cat([part[key] for part in parts], 1)[:, inverse]
+        else:
+            joined[key] = value
+    return joined
+
+
 def run_box_estimators(
     settings: BarrettBoxGrasp,
     trials: BoxTrials,
@@ -301,19 +340,22 @@ def run_box_estimators(
     model: SpatialContactModel | None = None,
     rbpf_methods: tuple[str, ...] = RBPF_METHODS,
     proposal: Proposal = "all_modes",
+    known_size: bool = True,
     seed: int = 0,
     done: Callable[[str], None] | None = None,
 ) -> BoxEstimatorRuns:
     """Run every estimator on the trials, timed (this process's CPU time and wall clock).
 
-    With ``model``, the RBPF methods of ``rbpf_methods`` (of :data:`RBPF_METHODS`: ``rbpf``
-    with the projection out of contact, ``rbpf_no_projection`` without) run with
-    ``rbpf_particles`` particles (0: the model's number of modes ``K``), and ``pf_same_n``
-    with as many. ``pf`` has ``pf_particles`` if it is positive, else as many as fit in the
-    first RBPF method's CPU time per step (a line through timed runs with 2 and 8
-    particles, then a run at its solution); without the RBPF, ``rbpf_particles``. Every
-    filter starts from the same prior (:func:`box_prior`) and draws from its own generator
-    (``seed`` plus an offset).
+    The filters assume the nominal mass and friction; with ``known_size`` they know each
+    box's size (as a camera measures it before the grasp: each group of trials of one box
+    runs with its scene), else they assume the nominal size too. With ``model``, the RBPF
+    methods of ``rbpf_methods`` (of :data:`RBPF_METHODS`: ``rbpf`` with the projection out of
+    contact, ``rbpf_no_projection`` without) run with ``rbpf_particles`` particles (0: the
+    model's number of modes ``K``), and ``pf_same_n`` with as many. ``pf`` has
+    ``pf_particles`` if it is positive, else as many as fit in the first RBPF method's CPU
+    time per step (a line through timed runs with 2 and 8 particles, then a run at its
+    solution); without the RBPF, ``rbpf_particles``. Every filter starts from the same prior
+    (:func:`box_prior`) and draws from its own generator (``seed`` plus an offset).
 
     Args:
         settings: the settings.
@@ -323,6 +365,7 @@ def run_box_estimators(
         model: the RBPF's model (:func:`box_contact_model`), or None.
         rbpf_methods: which RBPF methods to run.
         proposal: the RBPF's proposal.
+        known_size: the filters know each box's size.
         seed: the seed of the filters' draws.
         done: called with each method's name as it finishes (e.g. a progress bar).
 
@@ -347,29 +390,44 @@ def run_box_estimators(
     if model is not None and rbpf_particles == 0:
         rbpf_particles = model.num_modes
     for method in rbpf_methods if model is not None else ():
-        offset = 2 + RBPF_METHODS.index(method)
+        gen = generator(2 + RBPF_METHODS.index(method))
 
-        def rbpf_run(
-            projection: bool = method == "rbpf", offset: int = offset
+        def rbpf_group(
+            part: BoxTrials,
+            part_prior: Gaussian,
+            half: tuple[float, float, float] | None,
+            projection: bool = method == "rbpf",
+            gen: torch.Generator = gen,
         ) -> dict[str, Tensor]:
             assert model is not None
+            scene = box_filter_scene(settings, half)
             return run_box_rbpf(
-                model,
-                trials,
+                dataclasses.replace(model, scene=scene),
+                part,
                 rbpf_particles,
-                generator(offset),
-                prior=prior,
+                gen,
+                prior=part_prior,
                 projection=projection,
                 proposal=proposal,
             )
 
-        outputs[method], timings[method] = timed(rbpf_run)
+        def rbpf_all(run: GroupRun = rbpf_group) -> dict[str, Tensor]:
+            return _by_group(trials, prior, known_size, run)
+
+        outputs[method], timings[method] = timed(rbpf_all)
         particles[method] = rbpf_particles
         report(method)
     calibration: dict[int, float] = {}
 
-    def pf_run(n: int) -> tuple[dict[str, Tensor], Timing]:
-        return timed(lambda: run_box_pf(trials, settings, n, generator(4), prior=prior))
+    def pf_run(n: int, offset: int = 4) -> tuple[dict[str, Tensor], Timing]:
+        gen = generator(offset)
+
+        def pf_group(
+            part: BoxTrials, part_prior: Gaussian, half: tuple[float, float, float] | None
+        ) -> dict[str, Tensor]:
+            return run_box_pf(part, settings, n, gen, prior=part_prior, half_extents=half)
+
+        return timed(lambda: _by_group(trials, prior, known_size, pf_group))
 
     if pf_particles > 0 or not timings:
         n = pf_particles if pf_particles > 0 else rbpf_particles
@@ -387,9 +445,7 @@ def run_box_estimators(
     particles["pf"] = n
     report("pf")
     if timings.keys() - {"pf"}:
-        outputs["pf_same_n"], timings["pf_same_n"] = timed(
-            lambda: run_box_pf(trials, settings, rbpf_particles, generator(5), prior=prior)
-        )
+        outputs["pf_same_n"], timings["pf_same_n"] = pf_run(rbpf_particles, offset=5)
         particles["pf_same_n"] = rbpf_particles
         report("pf_same_n")
     outputs["ekf"], timings["ekf"] = timed(lambda: run_box_ekf(trials, settings, prior))
