@@ -20,6 +20,15 @@ and :func:`plot_grasp_snapshots`, :func:`plot_tracking_errors` and :func:`plot_m
 draw them. :func:`write_grasp_logs` writes the trials as run logs (:mod:`torchcontact.logs`)
 and :func:`replay` runs an estimator over logs, scored as in the experiment.
 
+BarrettHand box grasp (:mod:`torchcontact.sim` with robots): :func:`box_trials` simulates the
+WAM carrying the BarrettHand to a box that it grasps, tips over or pushes (:class:`BarrettBoxGrasp`
+holds the settings, :class:`BoxTrials` the truth and measurements: pair contact states,
+camera, tactile pads of :func:`hand_pads`, the tip-over step); :func:`run_box_estimators`
+tracks them with the spatial contact RBPF (:func:`box_contact_model`), the simulator particle
+filter, an EKF on SE(3) and the held camera pose; :func:`box_tracking_metrics` and
+:func:`box_tracking_table` score them and :func:`plot_box_errors`,
+:func:`plot_box_snapshots` and :func:`plot_box_states` draw them.
+
 Fitting (:mod:`torchcontact.filters`): :func:`sliding_logs` simulates boxes sliding to a stop
 under a noisy camera (:class:`SlidingFit` holds the settings), :func:`sliding_evidence` is the
 contact RBPF's evidence of friction and camera noise over them, and :data:`FITTERS` maximize
@@ -36,6 +45,49 @@ table as Markdown, JSON and CSV.
 """
 
 from torchcontact._checks import check_choice, check_int, check_name, check_real
+from torchcontact.experiments._barrett_box import (
+    BOX_PAIRS,
+    PAD_LINKS,
+    TIP_ANGLE,
+    BarrettBoxGrasp,
+    BoxTrials,
+    approach_plan,
+    barrett_box_scene,
+    barrett_member,
+    box_tilt,
+    box_trials,
+    first_tip_step,
+    grasp_phases,
+    hand_pads,
+    pad_triggers,
+    pair_slots,
+    pair_states,
+    palm_ik,
+)
+from torchcontact.experiments._barrett_box_estimators import (
+    RBPF_METHODS,
+    BoxEstimatorRuns,
+    box_contact_model,
+    box_filter_scene,
+    box_prior,
+    joint_motion,
+    run_box_camera,
+    run_box_ekf,
+    run_box_estimators,
+    run_box_pf,
+    run_box_rbpf,
+)
+from torchcontact.experiments._barrett_box_metrics import (
+    TIP_TOLERANCE,
+    box_tracking_metrics,
+    box_tracking_table,
+    geodesic_angle,
+)
+from torchcontact.experiments._barrett_box_plots import (
+    plot_box_errors,
+    plot_box_snapshots,
+    plot_box_states,
+)
 from torchcontact.experiments._checkpoint import (
     ARGUMENTS,
     CHECKPOINT,
@@ -142,6 +194,7 @@ from torchcontact.experiments._triangle_grasp_plots import (
 
 __all__ = [
     "ARGUMENTS",
+    "BOX_PAIRS",
     "CHECKPOINT",
     "FILTER_SEED_OFFSETS",
     "FINGER_JOINTS",
@@ -150,8 +203,15 @@ __all__ = [
     "GRASP_METHODS",
     "LOCATION",
     "NUM_BELIEF_FEATURES",
+    "PAD_LINKS",
+    "RBPF_METHODS",
     "SETTINGS",
     "STATISTICS_COLUMNS",
+    "TIP_ANGLE",
+    "TIP_TOLERANCE",
+    "BarrettBoxGrasp",
+    "BoxEstimatorRuns",
+    "BoxTrials",
     "EstimatorRuns",
     "Evaluation",
     "FitOutcome",
@@ -173,8 +233,18 @@ __all__ = [
     "Timing",
     "TriangleGrasp",
     "aggregate_seeds",
+    "approach_plan",
+    "barrett_box_scene",
+    "barrett_member",
     "belief_features",
+    "box_contact_model",
+    "box_filter_scene",
+    "box_prior",
     "box_scene",
+    "box_tilt",
+    "box_tracking_metrics",
+    "box_tracking_table",
+    "box_trials",
     "calibrate_pf",
     "camera_std",
     "check_choice",
@@ -184,24 +254,36 @@ __all__ = [
     "evaluate",
     "evaluate_settings",
     "evaluate_tracking",
+    "first_tip_step",
+    "geodesic_angle",
     "grasp_contact_model",
     "grasp_controls",
     "grasp_fit_evidence",
     "grasp_fit_logs",
     "grasp_fit_scene",
     "grasp_mode_table",
+    "grasp_phases",
     "grasp_run_logs",
     "grasp_schedule",
     "grasp_summary",
     "grasp_tactile_readings",
     "grasp_trials",
     "grasp_trials_from_logs",
+    "hand_pads",
+    "joint_motion",
     "launched_grasps",
     "load_checkpoint",
     "logged_settings",
     "min_vertex_height",
     "new_run_dir",
     "open_run",
+    "pad_triggers",
+    "pair_slots",
+    "pair_states",
+    "palm_ik",
+    "plot_box_errors",
+    "plot_box_snapshots",
+    "plot_box_states",
     "plot_grasp_snapshots",
     "plot_mode_timeline",
     "plot_tracking_errors",
@@ -210,6 +292,11 @@ __all__ = [
     "replay",
     "results_table",
     "round_seed",
+    "run_box_camera",
+    "run_box_ekf",
+    "run_box_estimators",
+    "run_box_pf",
+    "run_box_rbpf",
     "run_ekf",
     "run_estimators",
     "run_pf",

@@ -1,0 +1,455 @@
+"""Estimators of the BarrettHand box grasp: the simulator particle filter, an EKF without
+contact, the last camera pose held (and the contact RBPF where its model is available).
+
+Every estimator tracks all trials of :class:`~torchcontact.experiments.BoxTrials` in one
+batch. The filters assume the nominal box (the middle of each drawn range: size, mass,
+friction) and see the robot as kinematic: its measured joint angles (at the start of each
+step) and velocities (over the step) are the known control.
+
+1. ``pf`` / ``pf_same_n``: :class:`~torchcontact.filters.SimulatorParticleFilter` on the
+   spatial scene, every particle stepped by the simulator, process noise in the tangent,
+   weighted by the camera and the tactile pads (the pads' triggers of each particle's
+   simulated contacts, :func:`~torchcontact.experiments.pad_triggers`);
+2. ``ekf``: constant-velocity EKF on :data:`~torchcontact.filters.SE3` (no gravity, no
+   contact), camera updates only;
+3. ``camera``: the last camera pose, held while occluded.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from torchcontact.experiments._barrett_box import (
+    F64,
+    BarrettBoxGrasp,
+    BoxTrials,
+    H,
+    barrett_box_scene,
+    barrett_member,
+    hand_pads,
+    pad_triggers,
+    pair_slots,
+    pair_states,
+)
+from torchcontact.experiments._triangle_grasp import Timing, timed
+from torchcontact.filters import (
+    RBPF,
+    SE3,
+    Gaussian,
+    Proposal,
+    RobotControl,
+    SimulatorParticleFilter,
+    SpatialContactModel,
+    ekf_predict,
+    ekf_update,
+    project_out_of_contact,
+)
+from torchcontact.geometry import quat_exp, quat_mul
+from torchcontact.robots import load
+from torchcontact.sim import Scene, SceneState, StepResult
+from torchcontact.states import TactileArray
+
+#: Per-step process noise std of the particle filters: position (m), rotation (rad, body
+#: frame), linear (m/s) and angular (rad/s) velocity.
+PF_NOISE_STD = (5e-4, 5e-4, 5e-4, 5e-3, 5e-3, 5e-3, 0.01, 0.01, 0.01, 0.2, 0.2, 0.2)
+#: Per-step process noise std of the RBPF's modes, in the same tangent.
+RBPF_NOISE_STD = (2e-4, 2e-4, 2e-4, 2e-3, 2e-3, 2e-3, 5e-3, 5e-3, 5e-3, 0.05, 0.05, 0.05)
+#: The RBPF methods: with the projection out of contact, and without (the ablation).
+RBPF_METHODS = ("rbpf", "rbpf_no_projection")
+#: The prior's std: position (m), rotation (rad), linear and angular velocity.
+PRIOR_STD = (0.005, 0.005, 0.005, 0.035, 0.035, 0.035, 0.01, 0.01, 0.01, 0.1, 0.1, 0.1)
+
+
+def box_filter_scene(
+    settings: BarrettBoxGrasp, half_extents: tuple[float, float, float] | None = None
+) -> Scene:
+    """The filters' scene: the box (nominal mass and friction; the given size, else the
+    nominal one) on the table and the kinematic robot."""
+    return barrett_box_scene(
+        settings.nominal_half_extents() if half_extents is None else half_extents,
+        settings.nominal_mass(),
+        settings.nominal_friction(),
+        barrett_member(load("wam7_bhand"), mode="kinematic"),
+    )
+
+
+def joint_motion(trials: BoxTrials, t: int) -> RobotControl:
+    """The measured robot motion of step ``t`` (angles at its start, velocities over it)."""
+    assert trials.truth.q_robot is not None
+    assert trials.truth.v_robot is not None
+    return RobotControl(q_robot=trials.truth.q_robot[t], v_robot=trials.truth.v_robot[t + 1])
+
+
+def box_prior(trials: BoxTrials, gen: torch.Generator) -> Gaussian:
+    """The filters' initial belief: the true initial pose perturbed by :data:`PRIOR_STD`
+    (as a first camera look would), at rest; tangent covariance ``diag(PRIOR_STD²)``."""
+    std = torch.tensor(PRIOR_STD, dtype=F64)
+    start = torch.cat([trials.truth.q[0, :, 0], torch.zeros(trials.batch, 6, dtype=F64)], -1)
+    delta = std * torch.randn(trials.batch, 12, generator=gen, dtype=F64)
+    delta[:, 6:] = 0.0
+    mean = SE3.retract(start, delta)
+    return Gaussian(mean, torch.diag(std.pow(2)).expand(trials.batch, 12, 12).contiguous())
+
+
+def _tactile_term(
+    scene: Scene, pads: dict[str, TactileArray], readings: Tensor
+) -> Callable[[SceneState, StepResult], Tensor]:
+    """The PF's ``extra_log_likelihood``: ``log p(readings)`` ``(B, N)`` of the ``(B, S)``
+    pad readings given each particle's simulated contacts."""
+    arrays = list(pads.values())
+
+    def log_likelihood(state: SceneState, result: StepResult) -> Tensor:
+        assert state.q_robot is not None
+        assert state.robot_base is not None
+        triggers = pad_triggers(
+            scene,
+            pads,
+            q_robot=state.q_robot,
+            robot_base=state.robot_base,
+            points=result.geometry.points,
+            normals=result.geometry.normals,
+            pn=result.pn,
+            mode=result.mode,
+            active=result.geometry.active,
+        )
+        on = torch.cat(
+            [pad.reading_probability(triggers[..., i : i + 1]) for i, pad in enumerate(arrays)],
+            -1,
+        )
+        return torch.where(readings[:, None], torch.log(on), torch.log1p(-on)).sum(-1)
+
+    return log_likelihood
+
+
+def run_box_pf(
+    trials: BoxTrials,
+    settings: BarrettBoxGrasp,
+    num_particles: int,
+    gen: torch.Generator,
+    *,
+    prior: Gaussian,
+    half_extents: tuple[float, float, float] | None = None,
+    trial: int = 0,
+) -> dict[str, Tensor]:
+    """The simulator particle filter on every trial (batch ``B × N``), on
+    :func:`box_filter_scene` with ``half_extents``.
+
+    Returns:
+        ``pose`` ``(T, B, 7)`` (the weighted mean, :meth:`SimulatorPFBelief.mean`),
+        ``state_probs`` ``(T, B, P, 3)`` (the weighted histogram of each pair's contact
+        state over the particles' simulated modes), ``cloud`` ``(T, N, 7)`` and
+        ``cloud_weight`` ``(T, N)`` of trial ``trial``.
+    """
+    scene = box_filter_scene(settings, half_extents)
+    slots = pair_slots(scene)
+    pads = hand_pads(settings, scene.robots[0].robot)
+    pf = SimulatorParticleFilter(
+        scene,
+        num_particles,
+        process_std=torch.tensor(PF_NOISE_STD, dtype=F64),
+        measurement_std=settings.camera_std(),
+    )
+    belief = pf.init(prior, generator=gen)
+    poses, probs, clouds, cloud_weights = [], [], [], []
+    for t in range(trials.steps):
+        belief = pf.step(
+            belief,
+            trials.y[t],
+            control=joint_motion(trials, t),
+            extra_log_likelihood=_tactile_term(scene, pads, trials.readings[t]),
+            generator=gen,
+        )
+        weights = belief.weights()
+        poses.append(belief.mean()[..., :7])
+        states = pair_states(belief.modes, slots)  # (B, N, P)
+        one_hot = torch.nn.functional.one_hot(states, 3).to(F64)
+        probs.append((weights[..., None, None] * one_hot).sum(-3))
+        clouds.append(belief.particles[trial, :, :7].clone())
+        cloud_weights.append(weights[trial].clone())
+    return {
+        "pose": torch.stack(poses),
+        "state_probs": torch.stack(probs),
+        "cloud": torch.stack(clouds),
+        "cloud_weight": torch.stack(cloud_weights),
+    }
+
+
+def run_box_ekf(trials: BoxTrials, settings: BarrettBoxGrasp, prior: Gaussian) -> dict[str, Tensor]:
+    """Constant-velocity EKF on SE(3) without gravity or contact; camera updates only."""
+
+    def f(x: Tensor) -> Tensor:
+        turned = quat_mul(quat_exp(H * x[10:13]), x[3:7])
+        return torch.cat([x[:3] + H * x[7:10], turned, x[7:]])
+
+    def measure(x: Tensor) -> Tensor:
+        return x[:7]
+
+    std = torch.tensor(PF_NOISE_STD, dtype=F64)
+    Q = torch.diag(std.pow(2))
+    R = torch.diag(settings.camera_std().pow(2))
+    g = prior
+    poses = []
+    for t in range(trials.steps):
+        g = ekf_predict(g, f, Q=Q, manifold=SE3)
+        g, _ = ekf_update(g, trials.y[t], measure, R=R, manifold=SE3, measurement_manifold=SE3)
+        poses.append(g.mean[..., :7])
+    return {"pose": torch.stack(poses)}
+
+
+def run_box_camera(trials: BoxTrials, prior: Gaussian) -> dict[str, Tensor]:
+    """The last camera pose (the prior mean before the first)."""
+    last = prior.mean[..., :7]
+    poses = []
+    for t in range(trials.steps):
+        seen = torch.isfinite(trials.y[t]).all(-1, keepdim=True)
+        last = torch.where(seen, trials.y[t], last)
+        poses.append(last)
+    return {"pose": torch.stack(poses)}
+
+
+def box_contact_model(settings: BarrettBoxGrasp, train: BoxTrials) -> SpatialContactModel:
+    """The RBPF's switching model on :func:`box_filter_scene`: the modes and transition of the
+    training trials' rollouts, process noise :data:`RBPF_NOISE_STD`, the camera's noise and
+    the hand's pads. Modes inconsistent at the linearization point are ruled out
+    (``inconsistency_penalty=inf``): with a finite penalty, modes whose fingers drag the box
+    from a distance keep enough weight to carry it away while the camera is occluded."""
+    scene = box_filter_scene(settings)
+    return SpatialContactModel.from_rollout(
+        scene,
+        train.truth,
+        Q=torch.diag(torch.tensor(RBPF_NOISE_STD, dtype=F64).pow(2)),
+        R=torch.diag(settings.camera_std().pow(2)),
+        tactile=hand_pads(settings, scene.robots[0].robot),
+        inconsistency_penalty=math.inf,
+    )
+
+
+def run_box_rbpf(
+    model: SpatialContactModel,
+    trials: BoxTrials,
+    num_particles: int,
+    gen: torch.Generator,
+    *,
+    prior: Gaussian,
+    projection: bool,
+    proposal: Proposal = "all_modes",
+    gap_sigma: float = 1e-4,
+    trial: int = 0,
+) -> dict[str, Tensor]:
+    """The contact RBPF (``proposal``: every mode of every particle, or modes drawn from the
+    transition) with the pads' per-mode evidence and, with
+    ``projection``, every particle's Gaussian projected out of the bodies it penetrates
+    after each step (:func:`~torchcontact.filters.project_out_of_contact`).
+
+    Returns:
+        ``pose`` ``(T, B, 7)`` the mixture mean, ``state_probs`` ``(T, B, P, 3)`` each pair's
+        contact-state probabilities (the mode marginals summed over the modes in each
+        state), ``cloud`` ``(T, N, 7)`` and ``cloud_weight`` ``(T, N)`` of trial ``trial``.
+    """
+    rbpf = RBPF(model, num_particles, proposal=proposal)  # type: ignore[arg-type]
+    belief = rbpf.init(prior)
+    assert trials.truth.q_robot is not None
+    q_robot = trials.truth.q_robot
+    mode_states = pair_states(model.modes, pair_slots(model.scene))  # (K, P)
+    one_hot = torch.nn.functional.one_hot(mode_states, 3).to(F64)  # (K, P, 3)
+    poses, probs, clouds, cloud_weights = [], [], [], []
+    for t in range(trials.steps):
+        control = joint_motion(trials, t)
+        extra = model.tactile_log_likelihood(
+            trials.readings[t], pose=belief.mean()[..., :7], control=control
+        )
+        belief = rbpf.step(
+            belief, trials.y[t], extra_log_likelihood=extra, control=control, generator=gen
+        )
+        if projection:
+            # the robot where the step leaves it: the belief's time
+            after = RobotControl(q_robot=q_robot[t + 1], v_robot=control.v_robot)
+            belief = project_out_of_contact(belief, model.scene, gap_sigma=gap_sigma, control=after)
+        poses.append(belief.mean()[..., :7])
+        probs.append(torch.einsum("bk,kpc->bpc", belief.mode_marginals().to(F64), one_hot))
+        clouds.append(belief.gaussians.mean[trial, :, :7].clone())
+        cloud_weights.append(belief.log_weights[trial].exp())
+    return {
+        "pose": torch.stack(poses),
+        "state_probs": torch.stack(probs),
+        "cloud": torch.stack(clouds),
+        "cloud_weight": torch.stack(cloud_weights),
+    }
+
+
+@dataclass(frozen=True, eq=False)
+class BoxEstimatorRuns:
+    """What :func:`run_box_estimators` gives.
+
+    Attributes:
+        outputs: ``{method: output}`` (``pose`` ``(T, B, 7)``; the filters with contact
+            states also ``state_probs`` ``(T, B, P, 3)``, ``cloud`` and ``cloud_weight``).
+        timings: ``{method: Timing}``.
+        particles: ``{method: particle count}`` of the particle filters.
+        calibration: ``{particles: CPU seconds}`` of the plain PF's calibration runs (empty
+            without the RBPF or with a given ``pf_particles``).
+    """
+
+    outputs: dict[str, dict[str, Tensor]]
+    timings: dict[str, Timing]
+    particles: dict[str, int]
+    calibration: dict[int, float]
+
+
+#: An estimator's run on a group of trials: ``(trials, prior, box half extents or None)``.
+GroupRun = Callable[[BoxTrials, Gaussian, tuple[float, float, float] | None], dict[str, Tensor]]
+
+
+def _by_group(
+    trials: BoxTrials, prior: Gaussian, known_size: bool, run: GroupRun
+) -> dict[str, Tensor]:
+    """``run(trials, prior, half_extents)`` on each group of trials with the group's box size
+    (``known_size``) or once on all of them with the nominal size (``None``); per-trial
+    outputs (``pose``, ``state_probs``) concatenated in trial order, the rest (the particle
+    cloud of the first trial) from the first group."""
+    if not known_size:
+        return run(trials, prior, None)
+    parts, order = [], []
+    for group in torch.unique(trials.group).tolist():
+        index = (trials.group == group).nonzero().squeeze(-1)
+        half = trials.half_extents[index[0]].tolist()
+        parts.append(run(trials.subset(index), prior[index], (half[0], half[1], half[2])))
+        order.append(index)
+    inverse = torch.argsort(torch.cat(order))
+    joined = {}
+    for key, value in parts[0].items():
+        if key in ("pose", "state_probs"):
+            joined[key] = torch.cat([part[key] for part in parts], 1)[:, inverse]
+        else:
+            joined[key] = value
+    return joined
+
+
+def run_box_estimators(
+    settings: BarrettBoxGrasp,
+    trials: BoxTrials,
+    *,
+    rbpf_particles: int,
+    pf_particles: int,
+    model: SpatialContactModel | None = None,
+    rbpf_methods: tuple[str, ...] = RBPF_METHODS,
+    proposal: Proposal = "all_modes",
+    known_size: bool = True,
+    seed: int = 0,
+    done: Callable[[str], None] | None = None,
+) -> BoxEstimatorRuns:
+    """Run every estimator on the trials, timed (this process's CPU time and wall clock).
+
+    The filters assume the nominal mass and friction; with ``known_size`` they know each
+    box's size (as a camera measures it before the grasp: each group of trials of one box
+    runs with its scene), else they assume the nominal size too. With ``model``, the RBPF
+    methods of ``rbpf_methods`` (of :data:`RBPF_METHODS`: ``rbpf`` with the projection out of
+    contact, ``rbpf_no_projection`` without) run with ``rbpf_particles`` particles (0: the
+    model's number of modes ``K``), and ``pf_same_n`` with as many. ``pf`` has
+    ``pf_particles`` if it is positive, else as many as fit in the first RBPF method's CPU
+    time per step (a line through timed runs with 2 and 8 particles, then a run at its
+    solution); without the RBPF, ``rbpf_particles``. Every filter starts from the same prior
+    (:func:`box_prior`) and draws from its own generator (``seed`` plus an offset).
+
+    Args:
+        settings: the settings.
+        trials: the trials.
+        rbpf_particles: the RBPF's particle count (and ``pf_same_n``'s), or 0.
+        pf_particles: the plain PF's, or 0 (see above).
+        model: the RBPF's model (:func:`box_contact_model`), or None.
+        rbpf_methods: which RBPF methods to run.
+        proposal: the RBPF's proposal.
+        known_size: the filters know each box's size.
+        seed: the seed of the filters' draws.
+        done: called with each method's name as it finishes (e.g. a progress bar).
+
+    Raises:
+        ValueError: ``rbpf_methods`` names an unknown method.
+    """
+    unknown = [m for m in rbpf_methods if m not in RBPF_METHODS]
+    if unknown:
+        raise ValueError(f"rbpf_methods: expected names among {RBPF_METHODS}, got {unknown}")
+
+    def generator(offset: int) -> torch.Generator:
+        return torch.Generator().manual_seed(seed + offset)
+
+    def report(method: str) -> None:
+        if done is not None:
+            done(method)
+
+    prior = box_prior(trials, generator(1))
+    outputs: dict[str, dict[str, Tensor]] = {}
+    timings: dict[str, Timing] = {}
+    particles: dict[str, int] = {}
+    if model is not None and rbpf_particles == 0:
+        rbpf_particles = model.num_modes
+    for method in rbpf_methods if model is not None else ():
+        gen = generator(2 + RBPF_METHODS.index(method))
+
+        def rbpf_group(
+            part: BoxTrials,
+            part_prior: Gaussian,
+            half: tuple[float, float, float] | None,
+            projection: bool = method == "rbpf",
+            gen: torch.Generator = gen,
+        ) -> dict[str, Tensor]:
+            assert model is not None
+            scene = box_filter_scene(settings, half)
+            return run_box_rbpf(
+                dataclasses.replace(model, scene=scene),
+                part,
+                rbpf_particles,
+                gen,
+                prior=part_prior,
+                projection=projection,
+                proposal=proposal,
+            )
+
+        def rbpf_all(run: GroupRun = rbpf_group) -> dict[str, Tensor]:
+            return _by_group(trials, prior, known_size, run)
+
+        outputs[method], timings[method] = timed(rbpf_all)
+        particles[method] = rbpf_particles
+        report(method)
+    calibration: dict[int, float] = {}
+
+    def pf_run(n: int, offset: int = 4) -> tuple[dict[str, Tensor], Timing]:
+        gen = generator(offset)
+
+        def pf_group(
+            part: BoxTrials, part_prior: Gaussian, half: tuple[float, float, float] | None
+        ) -> dict[str, Tensor]:
+            return run_box_pf(part, settings, n, gen, prior=part_prior, half_extents=half)
+
+        return timed(lambda: _by_group(trials, prior, known_size, pf_group))
+
+    if pf_particles > 0 or not timings:
+        n = pf_particles if pf_particles > 0 else rbpf_particles
+        outputs["pf"], timings["pf"] = pf_run(n)
+    else:
+        target = next(iter(timings.values())).cpu
+        runs = {n: pf_run(n) for n in (2, 8)}
+        calibration = {n: run[1].cpu for n, run in runs.items()}
+        slope = max((calibration[8] - calibration[2]) / 6, 1e-9)
+        n = max(2, round(2 + (target - calibration[2]) / slope))
+        if n not in runs:
+            runs[n] = pf_run(n)
+            calibration[n] = runs[n][1].cpu
+        outputs["pf"], timings["pf"] = runs[n]
+    particles["pf"] = n
+    report("pf")
+    if timings.keys() - {"pf"}:
+        outputs["pf_same_n"], timings["pf_same_n"] = pf_run(rbpf_particles, offset=5)
+        particles["pf_same_n"] = rbpf_particles
+        report("pf_same_n")
+    outputs["ekf"], timings["ekf"] = timed(lambda: run_box_ekf(trials, settings, prior))
+    report("ekf")
+    outputs["camera"], timings["camera"] = timed(lambda: run_box_camera(trials, prior))
+    report("camera")
+    return BoxEstimatorRuns(outputs, timings, particles, calibration)
