@@ -77,8 +77,10 @@ def iterated_tikhonov(
         b: ``(*B', m, r)`` right-hand sides as columns (``*B'`` broadcasts against ``*B``).
         refinements: number of iterations, ``>= 1``.
         start: ``(*B', m, r)`` starting point ``x_0`` (a constant: detached), default zeros.
-        stop_at_fixed_point: stop as soon as an iteration returns its input exactly (every
-            later one would too, so the result is the same) at the price of one host
+        stop_at_fixed_point: stop as soon as an iteration moves no entry by more than
+            ``eps^(3/4)`` times the largest entry of its problem (the iterates then agree with
+            the limit to rounding, up to the contraction of the slowest direction; later
+            iterations only exchange rounding errors) at the price of one host
             synchronisation per iteration; only where no gradient is recorded (the
             derivative's iterates converge on their own).
 
@@ -101,8 +103,18 @@ def iterated_tikhonov(
     stop = stop_at_fixed_point and not (
         torch.is_grad_enabled() and (b.requires_grad or LU.requires_grad)
     )
+    resolution = torch.finfo(x.dtype).eps ** 0.75
     for _ in range(refinements - 1):
         previous, x = x, torch.linalg.lu_solve(LU, pivots, torch.addcmul(b, shift, x))
-        if stop and bool((x == previous).all()):
+        if stop and bool(_settled(x, previous, resolution).all()):
             break
     return x
+
+
+def _settled(x: Tensor, previous: Tensor, resolution: float) -> Tensor:
+    """``(*B,)`` bool: no entry of ``x (*B, m, r)`` moved from ``previous`` by more than
+    ``resolution`` times the largest entry of its problem."""
+    change, size = (x - previous).abs().flatten(-2), x.abs().flatten(-2)
+    if size.shape[-1] == 0:
+        return torch.ones(size.shape[:-1], dtype=torch.bool, device=size.device)
+    return change.amax(dim=-1) <= resolution * size.amax(dim=-1)
