@@ -27,6 +27,9 @@ SOLVE_MODE_MIN_LOAD_SHARE = 1e-3
 SOLVE_MODE_FRICTION_COST = 1e3
 #: Refinements of the weighted pass, whose larger shifts converge more slowly.
 SOLVE_MODE_WEIGHTED_REFINEMENTS = 10
+#: Fewest problems for which the Schur system is cut to the rows some problem needs: below,
+#: the gathers cost more host time than the smaller factorizations save.
+COMPACT_MIN_BATCH = 64
 
 
 def validate_mode(problem: ContactProblem, mode: Tensor) -> Tensor:
@@ -370,10 +373,11 @@ def _needed_rows(rows_active: Tensor) -> Tensor | None:
     Returns:
         ``(*B, w)`` indices of each problem's active rows first (in order), then inactive
         ones, ``w`` the most active rows of any problem (one host synchronisation); ``None``
-        where every row is needed somewhere (``w = m``).
+        where every row is needed somewhere (``w = m``) or the batch has fewer than
+        :data:`COMPACT_MIN_BATCH` problems.
     """
     m = rows_active.shape[-1]
-    if rows_active.numel() == 0:
+    if rows_active.numel() == 0 or rows_active.shape[:-1].numel() < COMPACT_MIN_BATCH:
         return None
     width = int(rows_active.sum(dim=-1).amax())
     if width >= m:
