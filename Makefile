@@ -56,6 +56,7 @@ bench: venv
 	$(PY) benchmarks/bench_contact.py
 	$(PY) benchmarks/bench_sim.py
 	$(PY) benchmarks/bench_sim3d.py
+	$(PY) benchmarks/bench_bhand.py
 	$(PY) benchmarks/accuracy_sim3d.py
 	$(PY) benchmarks/bench_robots.py
 

@@ -20,6 +20,9 @@ from torchcontact.contact._mode_solve import solve_mode_unchecked, validate_mode
 from torchcontact.contact._problem import ContactProblem
 from torchcontact.contact._solution import Solution, SolveStatus
 
+#: Share of the largest slip above which a sticking slot of an unsolved system starts sliding.
+STRAINED_SHARE = 0.01
+
 
 def update_mode(problem: ContactProblem, solution: Solution) -> Tensor:
     """One active-set correction of the modes of a mode-decoupled solution.
@@ -29,7 +32,10 @@ def update_mode(problem: ContactProblem, solution: Solution) -> Tensor:
     that pulls (``pn < 0``) separates; a sticking slot whose friction leaves the cone slides
     with its friction where it was (on the face of the two directions that carried it, or
     along the one direction); a sliding slot whose slip turned along its friction starts
-    sticking. When spatial, a slot sliding along an edge ``d`` whose slip is more opposed to
+    sticking. Where the linear solve did not converge (contradicting equalities, as a rigid
+    finger with fewer joints than rows sticking to a held box), the sticking slots that
+    slip most (at least 1 % of the largest slip among them) slide against that slip. When
+    spatial, a slot sliding along an edge ``d`` whose slip is more opposed to
     a neighbouring direction moves to the face between the two, and a slot sliding on a face
     whose friction turned negative along one of its directions slides along the other.
 
@@ -78,6 +84,11 @@ def update_mode(problem: ContactProblem, solution: Solution) -> Tensor:
         other = torch.where(pt_pair[..., 0] < pt_pair[..., 1], second, first)
         updated = torch.where(negative, SLIDING + other, updated)
     updated = torch.where(outside_cone, leaving, updated)
+    stuck = (mode == STICKING) & ~solution.status.converged.unsqueeze(-1)
+    slip_size = slip.abs().amax(dim=-1)
+    largest_slip = torch.where(stuck, slip_size, 0.0).amax(dim=-1, keepdim=True)
+    strained = stuck & (slip_size > tol * scale_v) & (slip_size >= STRAINED_SHARE * largest_slip)
+    updated = torch.where(strained, SLIDING + slip.argmin(dim=-1), updated)
     updated = torch.where(reverses, STICKING, updated)
     updated = torch.where(pulls, SEPARATED, updated)
     return torch.where(problem.slot_mask, updated, SEPARATED)

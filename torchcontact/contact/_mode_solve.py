@@ -27,6 +27,9 @@ SOLVE_MODE_MIN_LOAD_SHARE = 1e-3
 SOLVE_MODE_FRICTION_COST = 1e3
 #: Refinements of the weighted pass, whose larger shifts converge more slowly.
 SOLVE_MODE_WEIGHTED_REFINEMENTS = 10
+#: Fewest problems for which the Schur system is cut to the rows some problem needs: below,
+#: the gathers cost more host time than the smaller factorizations save.
+COMPACT_MIN_BATCH = 64
 
 
 def validate_mode(problem: ContactProblem, mode: Tensor) -> Tensor:
@@ -172,20 +175,40 @@ def solve_mode_unchecked(
     else:
         G_normal = Jn + slide_mu.unsqueeze(-1) * Jt_first
     J_tangent = tangent_rows.flatten(-3, -2)
-    C = torch.cat([Jn, J_tangent], dim=-2)
-    G = torch.cat([G_normal, J_tangent], dim=-2)
     rows_active = torch.cat([active, tangent_active.flatten(-2)], dim=-1)
+    # Inactive rows are zeroed in C and G (so in A = C M⁻¹ Gᵀ, where they get a unit
+    # diagonal): masking the (m, n) rows is cheaper than masking the (m, m) products.
+    zero = torch.zeros((), dtype=problem.dtype, device=problem.device)
+    row_mask = rows_active.unsqueeze(-1)
+    C = torch.where(row_mask, torch.cat([Jn, J_tangent], dim=-2), zero)
+    G = torch.where(row_mask, torch.cat([G_normal, J_tangent], dim=-2), zero)
 
     v_free = problem.v_free()
-    Minv_GT = problem.mass_solve(G.transpose(-1, -2))
     target = torch.cat(
         [-(problem.b_normal + problem.phi / problem.h), tangent_target.flatten(-2)], dim=-1
     )
+    start = (
+        None
+        if initial_impulses is None
+        else _impulse_coordinates(Jt, initial_impulses, r, rows_active, mode)
+    )
+    # The system on the rows that some problem of the batch needs: the inactive rows are
+    # moved to the end and dropped where no problem needs them (a unit diagonal there, which
+    # the regularisation's and the convergence test's scales still count).
+    m = rows_active.shape[-1]
+    keep = None if sync_free else _needed_rows(rows_active)
+    has_unit_rows = (~rows_active).any(dim=-1, keepdim=True)
+    if keep is not None:
+        C = C.gather(-2, keep.unsqueeze(-1).expand(*keep.shape, C.shape[-1]))
+        G = G.gather(-2, keep.unsqueeze(-1).expand(*keep.shape, G.shape[-1]))
+        target, rows_active = target.gather(-1, keep), rows_active.gather(-1, keep)
+        start = None if start is None else start.gather(-1, keep)
+    Minv_GT = problem.mass_solve(G.transpose(-1, -2))
     rhs = target - (C @ v_free.unsqueeze(-1)).squeeze(-1)
-    both = rows_active.unsqueeze(-1) & rows_active.unsqueeze(-2)
-    A = torch.where(both, C @ Minv_GT, torch.zeros((), dtype=problem.dtype))
+    A = C @ Minv_GT
     A = A + torch.diag_embed((~rows_active).to(problem.dtype))
-    b = torch.where(rows_active, rhs, torch.zeros((), dtype=problem.dtype))
+    b = torch.where(rows_active, rhs, zero)
+    unit_floor = has_unit_rows.to(problem.dtype)
     # With initial impulses the iteration stays at their split: its fixed points are the
     # solutions, so it returns the one nearest the start, and differentiates along it.
     x = _iterated_tikhonov(
@@ -193,15 +216,27 @@ def solve_mode_unchecked(
         b,
         torch.ones_like(b),
         refinements=SOLVE_MODE_REFINEMENTS,
-        start=None
-        if initial_impulses is None
-        else _impulse_coordinates(Jt, initial_impulses, r, rows_active, mode),
+        start=start,
+        diagonal_floor=unit_floor,
         sync_free=sync_free,
     )
     if initial_impulses is None and K:
-        x = _split_friction(A, b, x, sticking.any(dim=-1), K=K, r=r, sync_free=sync_free)
+        x = _split_friction(
+            A,
+            b,
+            x,
+            sticking.any(dim=-1),
+            K=K,
+            r=r,
+            keep=keep,
+            diagonal_floor=unit_floor,
+            sync_free=sync_free,
+        )
+    x_rows = x
+    if keep is not None:
+        x = torch.zeros((*batch, m), dtype=x.dtype, device=x.device).scatter(-1, keep, x)
 
-    v_next = v_free + (Minv_GT @ x.unsqueeze(-1)).squeeze(-1)
+    v_next = v_free + (Minv_GT @ x_rows.unsqueeze(-1)).squeeze(-1)
     pn = x[..., :K]
     tangential = x[..., K:].unflatten(-1, (K, r))
     # A sliding slot's friction: μ pn along its direction on an edge; on a face, μ pn / 2 + λ
@@ -219,9 +254,10 @@ def solve_mode_unchecked(
     pt_stick = _bracket_decomposition(Jt, tangential, sticking)
     pt = torch.where(sticking.unsqueeze(-1), pt_stick, pt_slide)
 
-    equality_error = _largest(((A @ x.unsqueeze(-1)).squeeze(-1) - b).abs())
+    equality_error = _largest(((A @ x_rows.unsqueeze(-1)).squeeze(-1) - b).abs())
     # Relative to the system's own terms: the same test at every scale of h, M and v.
-    scale = _largest(b.abs()) + _largest(A.abs().flatten(-2)) * _largest(x.abs())
+    largest_A = torch.maximum(_largest(A.abs().flatten(-2)), unit_floor.squeeze(-1))
+    scale = _largest(b.abs()) + largest_A * _largest(x.abs())
     scale = scale.clamp(min=torch.finfo(problem.dtype).tiny)
     finite = torch.isfinite(v_next).all(dim=-1) & torch.isfinite(pt).all(dim=(-1, -2))
     tolerance = default_tolerance(problem.dtype)
@@ -258,7 +294,16 @@ def friction_split_weights(normal_impulses: Tensor, *, dim: int = -1) -> Tensor:
 
 
 def _split_friction(
-    A: Tensor, b: Tensor, x: Tensor, sticks: Tensor, *, K: int, r: int, sync_free: bool
+    A: Tensor,
+    b: Tensor,
+    x: Tensor,
+    sticks: Tensor,
+    *,
+    K: int,
+    r: int,
+    keep: Tensor | None,
+    diagonal_floor: Tensor,
+    sync_free: bool,
 ) -> Tensor:
     """Re-solve the problems with sticking slots with weights that split friction by load.
 
@@ -268,44 +313,84 @@ def _split_friction(
     inside the total cone. Only the problems that have a sticking slot are solved again.
 
     Args:
-        A: ``(*B, m, m)`` Schur systems, ``m = K + K·r``.
-        b: ``(*B, m)`` their right-hand sides.
-        x: ``(*B, m)`` the unweighted solutions (their normal impulses set the weights).
+        A: ``(*B, w, w)`` Schur systems on the rows ``keep`` of the ``m = K + K·r`` rows.
+        b: ``(*B, w)`` their right-hand sides.
+        x: ``(*B, w)`` the unweighted solutions (their normal impulses set the weights).
         sticks: ``(*B,)`` bool, the problem has a sticking slot.
         K: number of slots.
         r: tangent dimension.
+        keep: ``(*B, w)`` the rows of the systems among the ``m`` (``None``: all, ``w = m``).
+        diagonal_floor: ``(*B, 1)`` floor of the regularisation's diagonal scale.
         sync_free: solve every problem again and keep the answers of those that stick (no
             host synchronisation).
 
     Returns:
-        ``(*B, m)``: ``x`` with the problems that stick solved again.
+        ``(*B, w)``: ``x`` with the problems that stick solved again.
     """
     if not sync_free and not bool(sticks.any()):
         return x
     every = sync_free or bool(sticks.all())
-    m = x.shape[-1]
+    w = x.shape[-1]
     index = torch.nonzero(sticks.reshape(-1)).squeeze(-1) if not every else None
     if index is not None:
-        A, b, chosen = A.reshape(-1, m, m)[index], b.reshape(-1, m)[index], x.reshape(-1, m)[index]
+        A, b, chosen = A.reshape(-1, w, w)[index], b.reshape(-1, w)[index], x.reshape(-1, w)[index]
+        diagonal_floor = diagonal_floor.reshape(-1, 1)[index]
+        rows = None if keep is None else keep.reshape(-1, w)[index]
     else:
-        chosen = x
-    tangent_weight = friction_split_weights(chosen[..., :K])
+        chosen, rows = x, keep
+    normal = chosen[..., :K]
+    if rows is not None:
+        normal = torch.zeros(
+            (*chosen.shape[:-1], K + K * r), dtype=x.dtype, device=x.device
+        ).scatter(-1, rows, chosen)[..., :K]
+    tangent_weight = friction_split_weights(normal)
     weights = torch.cat(
         [torch.ones_like(tangent_weight), tangent_weight.repeat_interleave(r, dim=-1)], -1
     )
+    if rows is not None:
+        weights = weights.gather(-1, rows)
     split = _iterated_tikhonov(
-        A, b, weights, refinements=SOLVE_MODE_WEIGHTED_REFINEMENTS, sync_free=sync_free
+        A,
+        b,
+        weights,
+        refinements=SOLVE_MODE_WEIGHTED_REFINEMENTS,
+        diagonal_floor=diagonal_floor,
+        sync_free=sync_free,
     )
     if sync_free:
         return torch.where(sticks.unsqueeze(-1), split, x)
     if index is None:
         return split
-    return x.reshape(-1, m).index_put((index,), split).reshape(x.shape)
+    return x.reshape(-1, w).index_put((index,), split).reshape(x.shape)
+
+
+def _needed_rows(rows_active: Tensor) -> Tensor | None:
+    """The rows of the Schur system to keep, or ``None`` to keep all.
+
+    Args:
+        rows_active: ``(*B, m)`` bool, the rows that carry unknowns.
+
+    Returns:
+        ``(*B, w)`` indices of each problem's active rows first (in order), then inactive
+        ones, ``w`` the most active rows of any problem (one host synchronisation); ``None``
+        where every row is needed somewhere (``w = m``) or the batch has fewer than
+        :data:`COMPACT_MIN_BATCH` problems.
+    """
+    m = rows_active.shape[-1]
+    if rows_active.numel() == 0 or rows_active.shape[:-1].numel() < COMPACT_MIN_BATCH:
+        return None
+    width = int(rows_active.sum(dim=-1).amax())
+    if width >= m:
+        return None
+    order = torch.argsort((~rows_active).to(torch.uint8), dim=-1, stable=True)
+    return order[..., :width]
 
 
 def _largest(values: Tensor) -> Tensor:
     """``(*B,)`` largest of non-negative ``values (*B, m)``, zero when ``m == 0``."""
-    return torch.nn.functional.pad(values, (0, 1)).amax(dim=-1)
+    if values.shape[-1] == 0:
+        return values.sum(dim=-1)
+    return values.amax(dim=-1)
 
 
 def _iterated_tikhonov(
@@ -315,12 +400,13 @@ def _iterated_tikhonov(
     *,
     refinements: int,
     start: Tensor | None = None,
+    diagonal_floor: Tensor | None = None,
     sync_free: bool = False,
 ) -> Tensor:
     """Solve ``A x = b`` (batched, possibly singular but consistent) by iterated Tikhonov.
 
     :func:`~torchcontact.contact.iterated_tikhonov` with ``S = ε diag(weights)``,
-    ``ε = √eps · max|diag A|``.
+    ``ε = √eps · max(max|diag A|, diagonal_floor)``.
 
     Args:
         A: ``(*B, m, m)`` system matrices.
@@ -328,6 +414,8 @@ def _iterated_tikhonov(
         weights: ``(*B, m)`` positive regularisation weights.
         refinements: number of iterations.
         start: ``(*B, m)`` starting point ``x_0`` (treated as a constant), default zeros.
+        diagonal_floor: ``(*B, 1)`` floor of the diagonal scale (the unit diagonal of rows
+            left out of ``A``), default none.
         sync_free: run every iteration (no host synchronisation) instead of stopping at an
             exact fixed point.
 
@@ -340,6 +428,8 @@ def _iterated_tikhonov(
         return b
     eps = torch.finfo(A.dtype).eps ** 0.5
     diagonal_scale = A.diagonal(dim1=-2, dim2=-1).abs().amax(dim=-1, keepdim=True)
+    if diagonal_floor is not None:
+        diagonal_scale = torch.maximum(diagonal_scale, diagonal_floor)
     system = tikhonov_system(A, eps * diagonal_scale * weights)
     x = iterated_tikhonov(
         system,
@@ -373,10 +463,7 @@ def _impulse_coordinates(
     if D == 2:
         tangential = (pt[..., 0] - pt[..., 1]).unsqueeze(-1)
     else:
-        basis = Jt[..., :2, :]
-        gram = basis @ basis.transpose(-1, -2)
-        gram = gram + torch.finfo(Jt.dtype).eps * torch.eye(2, dtype=Jt.dtype, device=Jt.device)
-        coords = torch.linalg.solve(gram, basis @ Jt.transpose(-1, -2))  # (*B, K, 2, D)
+        coords = _basis_coordinates(Jt, torch.ones_like(mode, dtype=torch.bool))
         tangential = (coords @ pt.unsqueeze(-1)).squeeze(-1)
         pt_pair = pt.gather(-1, torch.stack(friction_pair(mode, num_directions=D), dim=-1))
         split = 0.5 * (pt_pair[..., 0] - pt_pair[..., 1])
@@ -408,11 +495,7 @@ def _bracket_decomposition(Jt: Tensor, tangential: Tensor, sticking: Tensor) -> 
         lam = tangential[..., 0]
         pt = torch.stack([lam.clamp(min=0.0), (-lam).clamp(min=0.0)], dim=-1)
         return torch.where(sticking.unsqueeze(-1), pt, zero)
-    basis = Jt[..., :2, :]
-    gram = basis @ basis.transpose(-1, -2)
-    identity = torch.eye(2, dtype=Jt.dtype, device=Jt.device)
-    gram = torch.where(sticking[..., None, None], gram, identity)
-    coords = torch.linalg.solve(gram, basis @ Jt.transpose(-1, -2))  # (*B, K, 2, D)
+    coords = _basis_coordinates(Jt, sticking)
     c_this = coords
     c_next = coords.roll(-1, dims=-1)
     lam = tangential.unsqueeze(-1)  # (*B, K, 2, 1)
@@ -431,3 +514,34 @@ def _bracket_decomposition(Jt: Tensor, tangential: Tensor, sticking: Tensor) -> 
     pt = pt.scatter_add(-1, sector, alpha)
     pt = pt.scatter_add(-1, (sector + 1) % D, beta)
     return torch.where(sticking.unsqueeze(-1), pt, zero)
+
+
+def _basis_coordinates(Jt: Tensor, where: Tensor) -> Tensor:
+    """Least-squares coordinates of every friction row in the tangent basis (rows 0 and 1).
+
+    ``(Bᵀ B)⁻¹ Bᵀ Jt_d`` for the basis ``B = [Jt_0, Jt_1]``, by the closed-form inverse of the
+    2 × 2 Gram matrix (regularised by eps on its diagonal, so that it stays invertible).
+
+    Args:
+        Jt: ``(*B, K, D, n)`` friction-direction rows, ``D >= 4``.
+        where: ``(*B, K)`` bool, the slots whose coordinates are needed; the others get the
+            coordinates of an identity Gram matrix (finite, and without gradient trouble).
+
+    Returns:
+        ``(*B, K, 2, D)`` coordinates.
+    """
+    eps = torch.finfo(Jt.dtype).eps
+    first, second = Jt[..., 0, :], Jt[..., 1, :]
+    g00 = (first * first).sum(-1) + eps
+    g01 = (first * second).sum(-1)
+    g11 = (second * second).sum(-1) + eps
+    det = g00 * g11 - g01 * g01
+    one, zero = torch.ones_like(det), torch.zeros_like(det)
+    g00, g01 = torch.where(where, g00, one), torch.where(where, g01, zero)
+    g11, det = torch.where(where, g11, one), torch.where(where, det, one)
+    projections = Jt[..., :2, :] @ Jt.transpose(-1, -2)  # (*B, K, 2, D): Bᵀ Jt_d
+    p0, p1 = projections[..., 0, :], projections[..., 1, :]
+    inverse_det = det.reciprocal().unsqueeze(-1)
+    c0 = (g11.unsqueeze(-1) * p0 - g01.unsqueeze(-1) * p1) * inverse_det
+    c1 = (g00.unsqueeze(-1) * p1 - g01.unsqueeze(-1) * p0) * inverse_det
+    return torch.stack([c0, c1], dim=-2)
