@@ -186,6 +186,36 @@ def test_jacobian_of_a_box_pushed_by_a_finger() -> None:
     assert_jacobian_matches(model_of(scene, modes), x, control)
 
 
+def test_jacobian_of_a_barrett_finger_closing_on_a_box() -> None:
+    """Finger 1's outer link, closing at 0.5 rad/s (the joint velocity enters through the
+    problem's known velocity terms), touches a tilted box held in the air at two points of
+    its capsule: sticking at one, sliding at both, and free flight. Sticking at both
+    contradicts the gaps' closing (the box would have to follow the link rigidly and close
+    both gaps): its solve does not converge."""
+    scene = hand_scene(height=0.224)
+    turn = quat_exp(torch.tensor([0.15, 0.1, 0.2], dtype=DT))
+    x = torch.cat([torch.tensor([0.0, 0.0, 0.1], dtype=DT), turn, torch.zeros(6, dtype=DT)])
+    q_robot = torch.tensor([0.0, 1.64, 0.0, 0.0], dtype=DT)
+    v_robot = torch.tensor([0.0, 0.5, 0.0, 0.0], dtype=DT)
+    outer = next(
+        g.start
+        for g in scene.robot_slot_groups
+        if scene.robots[0].robot.collision_shapes[g.shape].link == "bhand_f1_outer"
+    )
+    inputs = {"q_robot": q_robot[None]}
+    up = torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=DT)
+    modes = torch.zeros(3, scene.num_slots, dtype=torch.long)
+    modes[0, outer] = 1
+    for slot in (outer, outer + 1):
+        modes[1, slot] = sliding_along(scene, x, slot, up, **dict(inputs))
+    control = RobotControl(q_robot=q_robot, v_robot=v_robot)
+    assert_jacobian_matches(model_of(scene, modes), x, control)
+    both = modes[:1].clone()
+    both[0, outer + 1] = 1
+    _, _, converged = model_of(scene, both).linearize(x, control=control)
+    assert not bool(converged[0])
+
+
 def test_jacobian_of_a_box_sliding_on_redundant_corners() -> None:
     """A box sliding along +x (and turning) on its four bottom corners: a singular system
     whose friction rows share the normal rows' redundancy (the step is unique)."""

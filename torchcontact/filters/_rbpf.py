@@ -125,6 +125,18 @@ class RBPF:
     linear model). A ``Q``, ``H``, ``d`` or ``R`` that every mode shares, given as a
     ``(K, ...)`` view of one matrix (``expand``), is not copied to the particles.
 
+    States on a manifold: a model with a ``manifold`` attribute (e.g.
+    :data:`~torchcontact.filters.SE3` for :class:`~torchcontact.filters.SpatialContactModel`)
+    keeps each particle's mean on the manifold and its covariance in the ``d``-dim tangent
+    there (error-state form). Its :class:`ModeDynamics` act on tangent coordinates: a
+    particle enters the step as :math:`\delta_i = \mathrm{local}(\mathrm{origin},
+    \mu_i)` (its covariance taken as it is, first order), the Kalman predict and update run
+    on :math:`\delta` as above, and the posterior mean leaves as
+    :math:`\mathrm{retract}(\mathrm{chart}, \delta_i^+)`. A measurement on a manifold (the
+    model's ``measurement_manifold``) enters as :math:`\mathrm{local}(\mathrm{measurement
+    \_chart}, y)`. The belief's :meth:`RBPFBelief.mean` is then the weighted Karcher mean.
+    Models without these attributes are Euclidean, and their steps are unchanged.
+
     Args:
         model: the switching model.
         num_particles: ``N >= K``.
@@ -232,7 +244,8 @@ class RBPF:
         """The belief before the first step: ``m_0 ~ initial``, ``x_0 ~ prior``.
 
         Args:
-            prior: ``(*B', n)`` Gaussian over ``x_0`` (Euclidean), dtype of the model.
+            prior: ``(*B', n)`` Gaussian over ``x_0`` (covariance ``(d, d)`` in the tangent
+                for a model on a manifold), dtype of the model.
             batch_shape: extra batch shape; the belief's batch ``*B`` is the broadcast of
                 ``prior.batch_shape`` and ``batch_shape`` (e.g. independent replicas).
 
