@@ -51,8 +51,8 @@ def plot_box_errors(
         position = (pose[..., :3] - truth[..., :3]).pow(2).sum(-1).mean(-1).sqrt()
         angle = geodesic_angle(truth[..., 3:], pose[..., 3:]).pow(2).mean(-1).sqrt()
         label = labels.get(method, method)
-        axes[0].plot(time_s, 1e3 * position, label=label)
-        axes[1].plot(time_s, torch.rad2deg(angle), label=label)
+        axes[0].plot(time_s.numpy(), (1e3 * position).numpy(), label=label)
+        axes[1].plot(time_s.numpy(), torch.rad2deg(angle).numpy(), label=label)
     for ax in axes:
         _shade_occlusion(ax, trials.occluded, time_s)
         ax.set_yscale("log")
@@ -137,12 +137,18 @@ def plot_box_states(trials: BoxTrials, state_probs: Tensor, *, trial: int = 0) -
     for p, (ax, name) in enumerate(zip(axes, BOX_PAIRS, strict=True)):
         probs = state_probs[:, trial, p]
         ax.imshow(
-            probs.T, aspect="auto", origin="lower", cmap="Blues", vmin=0, vmax=1, extent=extent
+            probs.T.numpy(),
+            aspect="auto",
+            origin="lower",
+            cmap="Blues",
+            vmin=0,
+            vmax=1,
+            extent=extent,
         )
-        ax.plot(
-            time_s, trials.states[:, trial, p], "o", mfc="none", color="C3", ms=5, label="truth"
-        )
-        ax.plot(time_s, probs.argmax(-1), "k.", ms=3, label="most probable")
+        times = time_s.numpy()
+        truth = trials.states[:, trial, p].numpy()
+        ax.plot(times, truth, "o", mfc="none", color="C3", ms=5, label="truth")
+        ax.plot(times, probs.argmax(-1).numpy(), "k.", ms=3, label="most probable")
         if int(trials.tip_step[trial]) >= 0:
             ax.axvline(H * (int(trials.tip_step[trial]) + 1), color="C1", lw=1)
         ax.set_yticks(range(3), _STATE_NAMES, fontsize=6)
