@@ -52,17 +52,23 @@ from torchcontact.envs import (
 from torchcontact.experiments import (
     CHECKPOINT,
     NUM_BELIEF_FEATURES,
+    PRESS,
+    PROBE_THRESHOLD,
     PotentialShaping,
     QLookup,
     RunLog,
     Setting,
     belief_features,
+    bottom_touch,
+    check_choice,
     check_int,
     check_name,
     check_real,
     evaluate,
     evaluate_settings,
+    lateral_spread,
     open_run,
+    probe_presses,
     read_checkpoint,
     results_table,
     round_seed,
@@ -78,6 +84,8 @@ from torchcontact.rl import (
 )
 
 DTYPE = torch.float32
+#: The targets of ``--targets``.
+_TARGETS = ("td", "monte_carlo")
 #: The checkpoint's entries besides ``"args"``.
 _SAVED = ("round", "online", "optimizer", "buffer", "counters", "history", "best")
 
@@ -136,6 +144,17 @@ class Args:
     """validation episodes (the same every time)"""
     final_episodes: int = 200
     """episodes per setting in the final comparison"""
+    probe_episodes: float = 0.0
+    """fraction of the training episodes whose behaviour probes: presses the peg down while
+    the camera is blind and the belief's lateral spread exceeds --probe-threshold, until a
+    bottom sensor fires (the scripted probe-then-insert policy on the network)"""
+    probe_threshold: float = PROBE_THRESHOLD
+    """lateral spread of the belief above which probing presses, m (also the probe setting
+    of the final comparison)"""
+    targets: str = "td"
+    """td: double-DQN targets bootstrapped from a frozen copy; monte_carlo: each step's
+    discounted shaped return to the end of its episode (fitted Q evaluation of the
+    behaviour, whose greedy policy is one step of policy improvement)"""
 
 
 @dataclasses.dataclass
@@ -192,6 +211,9 @@ def check_args(args: Args) -> _Tabular:
     check_real("vision_sigma", args.vision_sigma, low=0.0)
     check_real("epsilon_start", args.epsilon_start, low=0.0, high=1.0)
     check_real("epsilon_end", args.epsilon_end, low=0.0, high=1.0)
+    check_real("probe_episodes", args.probe_episodes, low=0.0, high=1.0)
+    check_real("probe_threshold", args.probe_threshold, low=0.0)
+    check_choice("targets", args.targets, _TARGETS)
     tabular = _load_tabular(args)
     K = tabular.model.num_modes
     check_int("particles", args.particles, low=K, why="the belief model's number of modes K")
@@ -312,7 +334,7 @@ def run(args: Args) -> dict[str, Any]:
         )
     online.load_state_dict(best["state"])
     network = deployed_network(lookup.table, online)
-    settings: tuple[Setting, ...] = ("oracle", "qmdp", "neural")
+    settings: tuple[Setting, ...] = ("oracle", "qmdp", "probe", "neural")
     if config.occlusion_radius == 0:  # the raw setting reads the camera's pose
         settings = ("oracle", "raw", "qmdp", "neural")
     evaluations = evaluate_settings(
@@ -323,6 +345,7 @@ def run(args: Args) -> dict[str, Any]:
         seed=args.seed + 104_729,
         filt=filt,
         network=network,
+        probe_threshold=args.probe_threshold,
     )
     for e in evaluations:
         writer.add_scalar(
@@ -398,6 +421,11 @@ def _collect(
 ) -> dict[str, float]:
     """One ε-greedy episode per environment with the filter in the loop, into the buffer.
 
+    A fraction ``args.probe_episodes`` of the episodes (drawn per round) probes first
+    (:func:`~torchcontact.experiments.probe_presses`); with ``args.targets ==
+    "monte_carlo"`` each step is stored with its discounted shaped return to the episode's end
+    as reward, and as terminal.
+
     Everything random in a round (episodes, filter, exploration) is seeded by the round's
     index, and the buffer's sampler is checkpointed, so a resumed run equals a straight one.
     """
@@ -412,6 +440,9 @@ def _collect(
     live = np.ones(B, dtype=bool)
     returns, lengths = np.zeros(B), np.zeros(B, dtype=np.int64)
     successes = np.zeros(B, dtype=bool)
+    probing = torch.rand(B, generator=generator) < args.probe_episodes
+    touched = torch.zeros(B, dtype=torch.bool)
+    steps: list[dict[str, torch.Tensor]] = []
     epsilon = schedule(counters["transitions"])
     while live.any():
         epsilon = schedule(counters["transitions"])
@@ -421,8 +452,15 @@ def _collect(
         greedy = (values + noise).argmax(-1)
         random = torch.randint(filt.model.num_actions, (B,), generator=generator)
         explore = torch.rand(B, generator=generator) < epsilon
-        actions = torch.where(explore, random, greedy).numpy()
+        press = probing & probe_presses(
+            blind=torch.as_tensor(np.isnan(observation["peg_pose"]).all(-1)),
+            spread=lateral_spread(filt, belief),
+            touched=touched,
+            threshold=args.probe_threshold,
+        )
+        actions = torch.where(press, PRESS, torch.where(explore, random, greedy)).numpy()
         observation, reward, terminated, truncated, info = env.step(actions)
+        touched |= press & bottom_touch(filt.model.task, torch.as_tensor(observation["tactile"]))
         belief = filt.step(belief, actions, observation, generator=generator)
         next_inputs = _inputs(filt, belief, lookup)
         next_potential = shaping.potential(env.states, info["peg_pose"], depth)
@@ -433,13 +471,15 @@ def _collect(
             terminated=terminated,
             gamma=gamma,
         )
-        index = torch.as_tensor(np.flatnonzero(live))
-        buffer.add(
-            observation=inputs[index],
-            action=torch.as_tensor(actions)[index],
-            reward=torch.as_tensor(shaped)[index],
-            next_observation=next_inputs[index],
-            terminal=torch.as_tensor(terminated)[index],
+        steps.append(
+            {
+                "observation": inputs,
+                "action": torch.as_tensor(actions),
+                "reward": torch.as_tensor(shaped),
+                "next_observation": next_inputs,
+                "terminal": torch.as_tensor(terminated),
+                "live": torch.as_tensor(live),
+            }
         )
         counters["transitions"] += int(live.sum())
         returns[live] += reward[live]
@@ -447,6 +487,14 @@ def _collect(
         successes |= live & info["success"]
         live = live & ~(terminated | truncated)
         inputs, potential = next_inputs, next_potential
+    if args.targets == "monte_carlo":  # each step's discounted return to its episode's end
+        to_go = torch.zeros(B, dtype=torch.float64)
+        for step in reversed(steps):
+            to_go = torch.where(step["live"], step["reward"] + gamma * to_go, 0.0)
+            step["reward"], step["terminal"] = to_go.clone(), torch.ones(B, dtype=torch.bool)
+    for step in steps:
+        index = torch.nonzero(step["live"]).squeeze(-1)
+        buffer.add(**{k: v[index] for k, v in step.items() if k != "live"})
     return {
         "round": round_index,
         "transitions": counters["transitions"],

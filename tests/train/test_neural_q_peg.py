@@ -13,8 +13,9 @@ import pytest
 import torch
 
 from tests.train import assert_logged, load_script
-from torchcontact.experiments import NUM_BELIEF_FEATURES
-from torchcontact.rl import DynaQ
+from torchcontact.envs import PegInHole2DVector, PegInHoleFilter
+from torchcontact.experiments import NUM_BELIEF_FEATURES, QLookup
+from torchcontact.rl import DynaQ, EpsilonSchedule, ReplayBuffer
 
 
 @pytest.fixture(scope="module")
@@ -123,9 +124,20 @@ def test_the_occluded_variant_trains_and_skips_the_raw_setting(
     module: ModuleType, tabular_run: Path, tmp_path: Path
 ) -> None:
     """The camera of the variant returns NaN near the hole: the filter runs on touch there,
-    and the raw setting (which reads the camera's pose) is left out of the comparison."""
-    result = module.run(_tiny(module, tmp_path, tabular_run, rounds=1, occlusion_radius=0.05))
-    assert set(result["evaluations"]) == {"oracle", "qmdp", "neural"}
+    and the raw setting (which reads the camera's pose) is left out of the comparison, the
+    probing one joins it. Probing behaviour and Monte Carlo targets train too."""
+    result = module.run(
+        _tiny(
+            module,
+            tmp_path,
+            tabular_run,
+            rounds=1,
+            occlusion_radius=0.05,
+            probe_episodes=1.0,
+            targets="monte_carlo",
+        )
+    )
+    assert set(result["evaluations"]) == {"oracle", "qmdp", "probe", "neural"}
     text = (Path(result["run_dir"]) / "results.md").read_text()
     assert "occlusion radius 50 mm" in text
 
@@ -164,6 +176,8 @@ def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
         ({"residual_penalty": -1.0}, r"residual_penalty: expected a finite number >= 0"),
         ({"occlusion_radius": -0.1}, r"occlusion_radius: expected a finite number >= 0"),
         ({"name": ""}, r"name: expected a non-empty name"),
+        ({"probe_episodes": 1.5}, r"probe_episodes: expected a finite number in \[0.0, 1.0\]"),
+        ({"targets": "mc"}, r"targets: expected one of \('td', 'monte_carlo'\)"),
     ],
 )
 def test_bad_arguments_fail_before_any_work(
@@ -188,3 +202,63 @@ def test_a_missing_tabular_run_is_named(module: ModuleType, tmp_path: Path) -> N
     with pytest.raises(ValueError, match=r"tabular_run .* run train/dyna_q_peg\.py first"):
         module.run(_tiny(module, tmp_path / "runs", tmp_path / "nothing"))
     assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.bitwise("a stored input is a copy of the next step's: rows are matched exactly")
+def test_monte_carlo_targets_are_the_discounted_returns_of_the_shaped_rewards(
+    module: ModuleType, tabular_run: Path, tmp_path: Path
+) -> None:
+    """One round collected twice from the same seed (the same episodes and actions): with
+    Monte Carlo targets each row's reward is the step's shaped reward (the TD buffer's) plus
+    γ times the target of the same episode's next step (the row whose input is this row's
+    next input), the last step's its shaped reward alone; every row is terminal."""
+    stored = {}
+    for targets in ("td", "monte_carlo"):
+        args = _tiny(
+            module, tmp_path, tabular_run, targets=targets, probe_episodes=0.5, buffer_size=4096
+        )
+        tabular = module.check_args(args)
+        lookup = QLookup(tabular.agent, tabular.model.task.states)
+        filt = PegInHoleFilter(tabular.model, num_particles=args.particles)
+        config = dataclasses.replace(tabular.model.task.config, occlusion_radius=0.05)
+        env = PegInHole2DVector(num_envs=3, config=config, observation="noisy")
+        online = module.compact_network(args, 7)
+        buffer = ReplayBuffer(args.buffer_size, online.input_size, dtype=torch.float32, seed=0)
+        module._collect(
+            args,
+            env,
+            filt,
+            lookup,
+            tabular,
+            online=online,
+            buffer=buffer,
+            schedule=EpsilonSchedule(0.2, 0.05, 20),
+            counters={"transitions": 0, "updates": 0},
+            round_index=0,
+        )
+        state = buffer.state_dict()
+        stored[targets] = {
+            k: state[k][: state["size"]]
+            for k in ("observations", "actions", "rewards", "next_observations", "terminals")
+        }
+    td, mc = stored["td"], stored["monte_carlo"]
+    assert (td["actions"] == mc["actions"]).all()
+    assert (td["observations"] == mc["observations"]).all()
+    assert mc["terminals"].all()
+    gamma = DynaQ.from_state_dict(
+        torch.load(tabular_run / "checkpoint.pt", weights_only=False)["agent"]
+    ).gamma
+    rows = td["observations"].shape[0]
+    same = (td["next_observations"][:, None] == td["observations"][None]).all(-1)  # (R, R)
+    later = torch.arange(rows)[None] > torch.arange(rows)[:, None]
+    follows = same & later
+    ends = 0
+    for j in range(rows):
+        following = torch.nonzero(follows[j]).flatten()
+        expected = float(td["rewards"][j])
+        if following.numel():
+            expected += gamma * float(mc["rewards"][following[0]])
+        else:
+            ends += 1
+        assert float(mc["rewards"][j]) == pytest.approx(expected, rel=1e-5, abs=1e-6)
+    assert ends == 3  # one end per episode

@@ -4,7 +4,8 @@ Peg-in-hole (:mod:`torchcontact.envs`): :func:`run_round` trains (or evaluates) 
 :class:`~torchcontact.rl.DynaQ` agent on rounds of batched episodes with
 :class:`PotentialShaping` and records the steps (:class:`PegLearning` holds the settings that
 learn the task); :func:`evaluate` executes the learned policy under uncertainty (oracle, raw
-observation, QMDP over the RBPF belief with :func:`qmdp_actions`, neural Q on
+observation, QMDP over the RBPF belief with :func:`qmdp_actions`, QMDP that first probes by
+touch where the camera is blind (:func:`probe_presses`, :func:`lateral_spread`), neural Q on
 :func:`belief_features`), with :class:`QLookup` mapping manipulation-state ids to Q rows.
 Scripts check their arguments with :func:`check_int`, :func:`check_real`, :func:`check_choice`
 and :func:`check_name` before any work, get a new run folder or the one to resume with
@@ -94,6 +95,13 @@ from torchcontact.experiments._peg_learning import (
     round_seed,
     run_round,
 )
+from torchcontact.experiments._peg_probing import (
+    PRESS,
+    PROBE_THRESHOLD,
+    bottom_touch,
+    lateral_spread,
+    probe_presses,
+)
 from torchcontact.experiments._q_lookup import QLookup
 from torchcontact.experiments._sweep import (
     STATISTICS_COLUMNS,
@@ -150,6 +158,8 @@ __all__ = [
     "GRASP_METHODS",
     "LOCATION",
     "NUM_BELIEF_FEATURES",
+    "PRESS",
+    "PROBE_THRESHOLD",
     "SETTINGS",
     "STATISTICS_COLUMNS",
     "EstimatorRuns",
@@ -174,6 +184,7 @@ __all__ = [
     "TriangleGrasp",
     "aggregate_seeds",
     "belief_features",
+    "bottom_touch",
     "box_scene",
     "calibrate_pf",
     "camera_std",
@@ -196,6 +207,7 @@ __all__ = [
     "grasp_tactile_readings",
     "grasp_trials",
     "grasp_trials_from_logs",
+    "lateral_spread",
     "launched_grasps",
     "load_checkpoint",
     "logged_settings",
@@ -205,6 +217,7 @@ __all__ = [
     "plot_grasp_snapshots",
     "plot_mode_timeline",
     "plot_tracking_errors",
+    "probe_presses",
     "qmdp_actions",
     "read_checkpoint",
     "replay",

@@ -1,0 +1,81 @@
+"""Probing before inserting: a scripted belief policy for the occluded peg-in-hole variant."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from torchcontact.envs import ACTION_NAMES, PegBelief, PegInHoleFilter, PegInHoleTask
+
+#: The probing action: press the peg straight down (``"-y"``).
+PRESS = ACTION_NAMES.index("-y")
+#: Default lateral standard deviation of the peg's bottom centre above which the probing
+#: policy presses (m).
+PROBE_THRESHOLD = 0.002
+
+
+def lateral_spread(filt: PegInHoleFilter, belief: PegBelief) -> Tensor:
+    r"""``(B,)`` standard deviation of the peg's bottom-centre ``x`` (world frame, m) under a
+    belief of the fitted model (:class:`~torchcontact.envs.PegInHoleBeliefModel`).
+
+    The bottom centre of a peg held with grasp ``(u, w, φ)`` by a gripper at ``(g_x, g_y,
+    g_θ)`` lies at :math:`b_x = g_x + \cos g_θ\, u - \sin g_θ\, w + \tfrac{h}{2} \sin(g_θ +
+    φ)` (``h`` the peg's length). The variance is that of the particle mixture: the weighted
+    spread of the particles' :math:`b_x` at their means, plus the weighted mean of each
+    particle's Gaussian pushed through the linearization :math:`J = (\cos g_θ, -\sin g_θ,
+    \tfrac{h}{2} \cos(g_θ + φ))`.
+
+    Args:
+        filt: the filter (its model's state is the grasp in the gripper frame).
+        belief: the belief, batch ``(B,)``.
+    """
+    rbpf = belief.rbpf
+    weights = rbpf.log_weights.exp()  # (B, N)
+    half = filt.model.task.config.peg_height / 2
+    bottom_x = filt.model.task.states.relative_pose(filt.particle_poses(belief))[..., 0]
+    mean = (weights * bottom_x).sum(-1, keepdim=True)
+    spread = (weights * (bottom_x - mean) ** 2).sum(-1)
+    angle = belief.gripper[:, 2:3]  # (B, 1)
+    phi = rbpf.gaussians.mean[..., 2]  # (B, N)
+    J = torch.stack(
+        [
+            torch.cos(angle).expand_as(phi),
+            -torch.sin(angle).expand_as(phi),
+            half * torch.cos(angle + phi),
+        ],
+        -1,
+    )  # (B, N, 3)
+    own = torch.einsum("bni,bnij,bnj->bn", J, rbpf.gaussians.cov[..., :3, :3], J)
+    return (spread + (weights * own).sum(-1)).clamp(min=0.0).sqrt()
+
+
+def bottom_touch(task: PegInHoleTask, readings: Tensor) -> Tensor:
+    """``(B,)`` whether any sensor on the peg's bottom side reads a touch in ``readings
+    (B, S)`` (bool; the sensors of ``task.sensors``, bottom first)."""
+    bottom = task.config.tactile_counts[0]
+    return readings[:, :bottom].any(-1)
+
+
+def probe_presses(
+    *, blind: Tensor, spread: Tensor, touched: Tensor, threshold: float = PROBE_THRESHOLD
+) -> Tensor:
+    """``(B,)`` where the probe-then-insert policy presses down instead of following QMDP.
+
+    It presses while the camera is blind, the belief's lateral spread exceeds ``threshold``
+    and the peg's bottom has not yet touched anything during the probe: pressed onto the
+    chamfer or the surface beside the hole, a bottom sensor fires on the side of the offset,
+    and the filter's contact-class evidence (through the graph's transition rows) prunes the
+    particles on the wrong side; centred, the peg enters the hole. Afterwards QMDP acts on the
+    sharpened belief.
+
+    Args:
+        blind: ``(B,)`` bool, the camera returned no pose (all NaN).
+        spread: ``(B,)`` :func:`lateral_spread` of the belief, m.
+        touched: ``(B,)`` bool, a bottom sensor fired during an earlier press of the episode
+            (:func:`bottom_touch`).
+        threshold: lateral spread above which to press, m.
+    """
+    return blind & (spread > threshold) & ~touched
+
+
+__all__ = ["PRESS", "PROBE_THRESHOLD", "bottom_touch", "lateral_spread", "probe_presses"]
