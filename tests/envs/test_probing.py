@@ -5,6 +5,7 @@ policy pressing exactly while blind, uncertain and untouched."""
 from __future__ import annotations
 
 import dataclasses
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -158,3 +159,18 @@ def test_the_probe_presses_while_blind_and_uncertain_until_the_bottom_touches(
     assert len(plain) == len(never)
     for (a, _), (b, _) in zip(plain, never, strict=True):
         assert (a == b).all()  # ints: exact
+
+
+def test_bad_probe_arguments_are_named(fitted: tuple[PegInHoleBeliefModel, DynaQ]) -> None:
+    """A negative or NaN threshold, and a filter whose model is not the fitted one (whose
+    state is the grasp), are refused before any episode runs."""
+    model, agent = fitted
+    lookup = QLookup(agent, model.task.states)
+    env = PegInHole2DVector(num_envs=1, config=BLIND, observation="noisy")
+    filt = PegInHoleFilter(model, num_particles=24)
+    for threshold in (-0.001, float("nan")):
+        with pytest.raises(ValueError, match="probe_threshold"):
+            evaluate(env, "probe", lookup=lookup, seed=0, filt=filt, probe_threshold=threshold)
+    other = SimpleNamespace(model=None)
+    with pytest.raises(ValueError, match="PegInHoleBeliefModel for setting 'probe'"):
+        evaluate(env, "probe", lookup=lookup, seed=0, filt=other)  # type: ignore[arg-type]

@@ -199,8 +199,9 @@ def evaluate(
         raise ValueError(f"filt is required for setting {setting!r} (its model reads the sensors)")
     if setting == "neural" and network is None:
         raise ValueError("network is required for setting 'neural'")
-    if setting == "raw" and not isinstance(getattr(filt, "model", None), PegInHoleBeliefModel):
-        raise ValueError("filt must run on a PegInHoleBeliefModel for setting 'raw'")
+    fitted = isinstance(getattr(filt, "model", None), PegInHoleBeliefModel)
+    if setting in ("raw", "probe") and not fitted:
+        raise ValueError(f"filt must run on a PegInHoleBeliefModel for setting {setting!r}")
     E = env.num_envs
     states = env.states
     generator = torch.Generator().manual_seed(seed)
@@ -249,7 +250,7 @@ def evaluate(
         seconds += time.perf_counter() - start
         next_observation, _, terminated, truncated, info = env.step(actions)
         observation = _noisy(next_observation)
-        if setting == "probe":
+        if setting == "probe" and filt is not None:
             readings = torch.as_tensor(observation["tactile"]).bool()
             touched |= press & bottom_touch(filt.model.task, readings)
         if belief is not None and filt is not None:

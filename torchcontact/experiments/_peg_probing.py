@@ -5,7 +5,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from torchcontact.envs import ACTION_NAMES, PegBelief, PegInHoleFilter, PegInHoleTask
+from torchcontact.envs import (
+    ACTION_NAMES,
+    PegBelief,
+    PegInHoleBeliefModel,
+    PegInHoleFilter,
+    PegInHoleTask,
+)
 
 #: The probing action: press the peg straight down (``"-y"``).
 PRESS = ACTION_NAMES.index("-y")
@@ -28,7 +34,15 @@ def lateral_spread(filt: PegInHoleFilter, belief: PegBelief) -> Tensor:
     Args:
         filt: the filter (its model's state is the grasp in the gripper frame).
         belief: the belief, batch ``(B,)``.
+
+    Raises:
+        ValueError: ``filt`` does not run on a :class:`~torchcontact.envs.PegInHoleBeliefModel`
+            (the physics model's state is the peg's world pose and twist).
     """
+    if not isinstance(filt.model, PegInHoleBeliefModel):
+        raise ValueError(
+            f"filt must run on a PegInHoleBeliefModel, got {type(filt.model).__name__}"
+        )
     rbpf = belief.rbpf
     weights = rbpf.log_weights.exp()  # (B, N)
     half = filt.model.task.config.peg_height / 2
