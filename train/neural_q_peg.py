@@ -2,7 +2,8 @@
 
     python train/dyna_q_peg.py            # first: the tabular Q, graph and belief model
     python train/neural_q_peg.py --tabular-run runs/dyna_q_peg__0__<unix time> --rounds 8
-    python train/neural_q_peg.py --tabular-run <that run> --occlusion-radius 0.05
+    python train/neural_q_peg.py --tabular-run <that run> --occlusion-radius 0.05 \
+        --probe-episodes 0.5 --targets monte_carlo --residual-penalty 0.1
 
 Starts from a finished ``dyna_q_peg`` run (``--tabular-run``, its run folder): its Q table,
 manipulation graph and fitted belief model. ``--occlusion-radius`` (and ``--vision-sigma``) run
@@ -23,10 +24,17 @@ trust region around QMDP's policy: ``--residual-penalty`` times the mean square 
 residual's action-dependent part ``g(z, a) − mean_b g(z, b)`` (the part common to all
 actions, QMDP's optimism about the belief's value, changes no decision and is free). The buffer
 stores the QMDP values of each belief (``A``) with its compact features (``F``), not the
-probabilities over all states: with a frozen head they are all the network needs. The greedy
-network is evaluated every few rounds on validation episodes; the best (the untrained network,
-i.e. QMDP, included) is kept. Finally the settings are compared on the same fresh episodes
-(oracle, raw on the standard camera, QMDP, neural). Writes TensorBoard logs, checkpoints,
+probabilities over all states: with a frozen head they are all the network needs. Where the
+camera is blind, QMDP never acts to find out where the peg is: ``--probe-episodes`` lets a
+fraction of the training episodes probe first (press the peg down while blind and laterally
+uncertain until a bottom sensor fires, :func:`~torchcontact.experiments.probe_presses`), so
+the data hold what probing leads to, and ``--targets monte_carlo`` fits each step's
+discounted return to the end of its episode instead of the bootstrapped target (a Q
+evaluation of that behaviour; the greedy network is one step of policy improvement over it).
+The greedy network is evaluated every few rounds on validation episodes; the best (the
+untrained network, i.e. QMDP, included) is kept. Finally the settings are compared on the
+same fresh episodes (oracle, raw on the standard camera, QMDP, probe-then-QMDP on the
+occluded variant, neural). Writes TensorBoard logs, checkpoints,
 ``network.pt`` and ``results.md`` to a new run folder, ``runs/neural_q_peg__<seed>__<unix
 time>``; a killed run continues where its last checkpoint left it, to the same result, with
 ``--resume <that folder>`` (the same arguments; ``--rounds`` may grow).
@@ -151,6 +159,11 @@ class Args:
     probe_threshold: float = PROBE_THRESHOLD
     """lateral spread of the belief above which probing presses, m (also the probe setting
     of the final comparison)"""
+    press_penalty: float | None = None
+    """with a value: the trust region measures advantages from the mean residual of the
+    actions other than pressing ("-y"), weighs pressing's by this value and the others' by
+    --residual-penalty (a large one keeps their order QMDP's: the residual then learns when
+    to press, the probing decision); None: every action's by --residual-penalty"""
     targets: str = "td"
     """td: double-DQN targets bootstrapped from a frozen copy; monte_carlo: each step's
     discounted shaped return to the end of its episode (fitted Q evaluation of the
@@ -213,6 +226,8 @@ def check_args(args: Args) -> _Tabular:
     check_real("epsilon_end", args.epsilon_end, low=0.0, high=1.0)
     check_real("probe_episodes", args.probe_episodes, low=0.0, high=1.0)
     check_real("probe_threshold", args.probe_threshold, low=0.0)
+    if args.press_penalty is not None:
+        check_real("press_penalty", args.press_penalty, low=0.0)
     check_choice("targets", args.targets, _TARGETS)
     tabular = _load_tabular(args)
     K = tabular.model.num_modes
@@ -516,8 +531,13 @@ def _fit(
     gamma: float,
 ) -> dict[str, float]:
     """Fitted Q iteration on the buffer: per iteration a frozen target and Adam steps on the
-    double-DQN loss plus the trust-region penalty."""
+    double-DQN loss (or the Monte Carlo regression: terminal rows) plus the trust-region
+    penalty, ``residual_penalty`` on every action's advantage, or with ``press_penalty`` that
+    weight on pressing's advantage over the other actions' mean residual."""
     losses, residuals = [], []
+    A = online.num_actions
+    others = torch.arange(A) != PRESS
+    weights = torch.where(others, args.residual_penalty, args.press_penalty or 0.0).to(DTYPE)
     for _ in range(args.fitted_iterations):
         update_target(target=target, online=online)
         for _ in range(args.updates_per_iteration):
@@ -525,10 +545,17 @@ def _fit(
             residual = online.residual_values(batch.observations)
             # Only the part that differs between actions changes decisions: the common part
             # (QMDP's optimism about the value of the belief) is free.
-            penalty = (residual - residual.mean(-1, keepdim=True)).square().mean()
+            if args.press_penalty is None:
+                advantage = residual - residual.mean(-1, keepdim=True)
+                trust = args.residual_penalty * advantage.square().mean()
+            else:  # the other actions' mean is the common part; pressing has its own weight
+                common = residual[:, others].mean(-1, keepdim=True)
+                advantage = residual - common
+                trust = (weights * advantage.square()).mean()
+            penalty = advantage.square().mean()
             loss = dqn_loss(online, target, batch, gamma, double=True)
             optimizer.zero_grad()
-            (loss + args.residual_penalty * penalty).backward()
+            (loss + trust).backward()
             optimizer.step()
             counters["updates"] += 1
             losses.append(float(loss.detach()))

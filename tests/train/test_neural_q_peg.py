@@ -177,6 +177,7 @@ def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
         ({"occlusion_radius": -0.1}, r"occlusion_radius: expected a finite number >= 0"),
         ({"name": ""}, r"name: expected a non-empty name"),
         ({"probe_episodes": 1.5}, r"probe_episodes: expected a finite number in \[0.0, 1.0\]"),
+        ({"press_penalty": -1.0}, r"press_penalty: expected a finite number >= 0"),
         ({"targets": "mc"}, r"targets: expected one of \('td', 'monte_carlo'\)"),
     ],
 )
@@ -262,3 +263,54 @@ def test_monte_carlo_targets_are_the_discounted_returns_of_the_shaped_rewards(
             ends += 1
         assert float(mc["rewards"][j]) == pytest.approx(expected, rel=1e-5, abs=1e-6)
     assert ends == 3  # one end per episode
+
+
+def test_the_press_trust_region_leaves_the_other_actions_in_qmdp_order(module: ModuleType) -> None:
+    """Monte Carlo rows whose targets favour pressing ("-y") by 0.3 and another action by
+    0.2 on half the beliefs: with a heavy penalty on every advantage but pressing's, the
+    fitted residual raises pressing there, and the other actions' residuals stay within a
+    small fraction of that gap of their common mean (the regression alone would lift the
+    other action too, by about 0.2)."""
+    args = module.Args(
+        tabular_run="unused",
+        hidden=16,
+        learning_rate=1e-2,
+        fitted_iterations=1,
+        updates_per_iteration=400,
+        batch_size=128,
+        residual_penalty=100.0,
+        press_penalty=0.0,
+        targets="monte_carlo",
+    )
+    generator = torch.Generator().manual_seed(0)
+    online = module.compact_network(args, 7)
+    target = module.compact_network(args, 7)
+    R = 2048
+    inputs = torch.randn(R, online.input_size, generator=generator)
+    inputs[:, :7] = 0.0  # QMDP values 0: the residual is the whole value
+    actions = torch.randint(7, (R,), generator=generator)
+    favoured = inputs[:, 7] > 0  # half the beliefs
+    press, other = 4, 1
+    rewards = torch.where(favoured & (actions == press), 0.3, 0.0)
+    rewards = rewards + torch.where(favoured & (actions == other), 0.2, 0.0)
+    buffer = ReplayBuffer(R, online.input_size, dtype=torch.float32, seed=0)
+    buffer.add(
+        observation=inputs,
+        action=actions,
+        reward=rewards,
+        next_observation=inputs,
+        terminal=torch.ones(R, dtype=torch.bool),
+    )
+    optimizer = torch.optim.Adam(
+        [p for p in online.parameters() if p.requires_grad], lr=args.learning_rate
+    )
+    counters = {"transitions": R, "updates": 0}
+    module._fit(args, online, target, optimizer, buffer, counters, gamma=0.99)
+    assert counters["updates"] == 400
+    with torch.no_grad():
+        residual = online.residual_values(inputs[favoured])
+    rest = torch.arange(7) != press
+    common = residual[:, rest].mean(-1)
+    lift = float((residual[:, press] - common).mean())
+    assert lift > 0.15  # pressing's advantage is learned where it pays
+    assert float((residual[:, rest] - common[:, None]).abs().max()) < 0.2 * lift
