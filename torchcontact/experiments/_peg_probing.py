@@ -77,10 +77,9 @@ def probe_presses(
 
     It presses while the camera is blind, the belief's lateral spread exceeds ``threshold``
     and the peg's bottom has not yet touched anything during the probe: pressed onto the
-    chamfer or the surface beside the hole, a bottom sensor fires on the side of the offset,
-    and the filter's contact-class evidence (through the graph's transition rows) prunes the
-    particles on the wrong side; centred, the peg enters the hole. Afterwards QMDP acts on the
-    sharpened belief.
+    chamfer or the surface beside the hole, a bottom sensor fires on the side of the offset;
+    centred, the peg enters the hole. Afterwards QMDP acts on the belief that the touch
+    updated (through the contact-class evidence and the graph's transition rows).
 
     Args:
         blind: ``(B,)`` bool, the camera returned no pose (all NaN).
