@@ -24,10 +24,12 @@ from torchcontact.envs import (
 from torchcontact.experiments import (
     PotentialShaping,
     QLookup,
+    bottom_sides,
     bottom_touch,
     evaluate,
     lateral_spread,
     run_round,
+    shift_actions,
 )
 from torchcontact.filters import Gaussian
 from torchcontact.rl import DynaQ
@@ -174,3 +176,81 @@ def test_bad_probe_arguments_are_named(fitted: tuple[PegInHoleBeliefModel, DynaQ
     other = SimpleNamespace(model=None)
     with pytest.raises(ValueError, match="PegInHoleBeliefModel for setting 'probe'"):
         evaluate(env, "probe", lookup=lookup, seed=0, filt=other)  # type: ignore[arg-type]
+
+
+def test_bottom_sides_split_the_bottom_sensors_by_their_x(
+    fitted: tuple[PegInHoleBeliefModel, DynaQ],
+) -> None:
+    """By the sensors' positions (peg frame): the bottom side is ``y = −h/2``, its left half
+    ``x < 0``; no other sensor counts."""
+    model, _ = fitted
+    positions = model.task.sensors.positions
+    bottom = torch.isclose(positions[:, 1], torch.tensor(-BLIND.peg_height / 2).double())
+    readings = torch.eye(positions.shape[0], dtype=torch.bool)
+    sides = bottom_sides(model.task, readings)
+    assert (sides[:, 0] == (bottom & (positions[:, 0] < 0))).all()  # bools: exact
+    assert (sides[:, 1] == (bottom & (positions[:, 0] > 0))).all()
+
+
+def test_shift_actions_follow_the_rule_case_by_case() -> None:
+    """Every combination of camera, touch and spread against the rule written out per case:
+    blind and one corner touching: away from it; blind, nothing touching and uncertain:
+    press; anything else: QMDP's action."""
+    cases = []
+    for blind in (False, True):
+        for left in (False, True):
+            for right in (False, True):
+                for spread in (0.001, 0.003):
+                    cases.append((blind, left, right, spread))
+    qmdp = torch.full((len(cases),), ACTION_NAMES.index("+theta"))
+    actions = shift_actions(
+        qmdp,
+        blind=torch.tensor([c[0] for c in cases]),
+        spread=torch.tensor([c[3] for c in cases]),
+        sides=torch.tensor([[c[1], c[2]] for c in cases]),
+        threshold=0.002,
+    )
+    for (blind, left, right, spread), action in zip(cases, actions.tolist(), strict=True):
+        if blind and right and not left:
+            expected = "-x"
+        elif blind and left and not right:
+            expected = "+x"
+        elif blind and not (left or right) and spread > 0.002:
+            expected = "-y"
+        else:
+            expected = "+theta"
+        assert ACTION_NAMES[action] == expected, (blind, left, right, spread)
+
+
+def test_the_shift_probe_moves_away_from_the_corner_that_lands(
+    fitted: tuple[PegInHoleBeliefModel, DynaQ], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Blind, the peg 15 mm right of the hole's centre (its right corner reaches past the
+    chamfer, `tests/envs/test_occlusion.py`), threshold 0: the policy presses until the right
+    bottom corner touches, then moves left ("-x") while it touches alone."""
+    model, agent = fitted
+    config = dataclasses.replace(
+        BLIND, start_x=(0.015, 0.015), start_angle=(0.0, 0.0), grasp_angle=(0.0, 0.0)
+    )
+    lookup = QLookup(agent, model.task.states)
+    env = PegInHole2DVector(num_envs=1, config=config, observation="noisy")
+    filt = PegInHoleFilter(model, num_particles=24)
+    positions = model.task.sensors.positions.numpy()
+    bottom = np.isclose(positions[:, 1], -config.peg_height / 2)
+    right = bottom & (positions[:, 0] > 0)
+    steps: list[tuple[int, np.ndarray]] = []
+    step = env.step
+
+    def recorded(actions: np.ndarray) -> Any:
+        result = step(actions)
+        steps.append((int(actions[0]), result[0]["tactile"][0].astype(bool)))
+        return result
+
+    monkeypatch.setattr(env, "step", recorded)
+    evaluate(env, "shift", lookup=lookup, seed=1, filt=filt, probe_threshold=0.0)
+    names = [ACTION_NAMES[a] for a, _ in steps]
+    touch = next(i for i, (_, reading) in enumerate(steps) if reading[bottom].any())
+    assert set(names[: touch + 1]) == {"-y"}  # pressed until the first touch
+    assert steps[touch][1][right].any()
+    assert not steps[touch][1][bottom & ~right].any()
+    assert names[touch + 1] == "-x"  # away from the right corner

@@ -96,11 +96,15 @@ from torchcontact.experiments._peg_learning import (
     run_round,
 )
 from torchcontact.experiments._peg_probing import (
+    LEFT,
     PRESS,
     PROBE_THRESHOLD,
+    RIGHT,
+    bottom_sides,
     bottom_touch,
     lateral_spread,
     probe_presses,
+    shift_actions,
 )
 from torchcontact.experiments._q_lookup import QLookup
 from torchcontact.experiments._sweep import (
@@ -156,10 +160,12 @@ __all__ = [
     "FITTERS",
     "FIT_METHODS",
     "GRASP_METHODS",
+    "LEFT",
     "LOCATION",
     "NUM_BELIEF_FEATURES",
     "PRESS",
     "PROBE_THRESHOLD",
+    "RIGHT",
     "SETTINGS",
     "STATISTICS_COLUMNS",
     "EstimatorRuns",
@@ -184,6 +190,7 @@ __all__ = [
     "TriangleGrasp",
     "aggregate_seeds",
     "belief_features",
+    "bottom_sides",
     "bottom_touch",
     "box_scene",
     "calibrate_pf",
@@ -232,6 +239,7 @@ __all__ = [
     "save_checkpoint",
     "scalar_metrics",
     "seed_statistics",
+    "shift_actions",
     "simulate_grasps",
     "sliding_evidence",
     "sliding_logs",

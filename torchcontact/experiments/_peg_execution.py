@@ -25,15 +25,17 @@ from torchcontact.envs import (
 from torchcontact.experiments._peg_probing import (
     PRESS,
     PROBE_THRESHOLD,
+    bottom_sides,
     bottom_touch,
     lateral_spread,
     probe_presses,
+    shift_actions,
 )
 from torchcontact.experiments._q_lookup import QLookup
 from torchcontact.rl import QNetwork, greedy_action, qmdp_action
 
 #: The execution settings compared by :func:`evaluate`.
-Setting = Literal["oracle", "raw", "qmdp", "probe", "neural"]
+Setting = Literal["oracle", "raw", "qmdp", "probe", "shift", "neural"]
 SETTINGS: tuple[str, ...] = get_args(Setting)
 #: Belief features after the state probabilities (see :func:`belief_features`).
 NUM_BELIEF_FEATURES = 8 + NUM_CONTACT_CLASSES
@@ -166,6 +168,9 @@ def evaluate(
     * ``"probe"``: probe, then insert: QMDP, except that while the camera is blind and the
       belief's lateral spread exceeds ``probe_threshold`` it presses the peg down until a
       bottom sensor fires (:func:`probe_presses`, once per episode), for the occluded variant;
+    * ``"shift"``: touch-and-shift: QMDP, except that while the camera is blind it moves away
+      from a bottom corner that touches alone, and presses while nothing touches and the
+      spread exceeds ``probe_threshold`` (:func:`shift_actions`);
     * ``"neural"``: ``network`` on :func:`belief_features` of ``filt``'s belief.
 
     Every setting takes the action of highest value with one tie rule,
@@ -185,7 +190,8 @@ def evaluate(
             sensors).
         network: the neural Q function (``"neural"``).
         label: the :attr:`Evaluation.setting` (default: ``setting``).
-        probe_threshold: the lateral spread (m) above which ``"probe"`` presses.
+        probe_threshold: the lateral spread (m) above which ``"probe"`` and ``"shift"``
+            press.
 
     Raises:
         ValueError: a missing or invalid argument.
@@ -200,14 +206,14 @@ def evaluate(
     if setting == "neural" and network is None:
         raise ValueError("network is required for setting 'neural'")
     fitted = isinstance(getattr(filt, "model", None), PegInHoleBeliefModel)
-    if setting in ("raw", "probe") and not fitted:
+    if setting in ("raw", "probe", "shift") and not fitted:
         raise ValueError(f"filt must run on a PegInHoleBeliefModel for setting {setting!r}")
     E = env.num_envs
     states = env.states
     generator = torch.Generator().manual_seed(seed)
     first, info = env.reset(seed=seed)
     observation = _noisy(first)
-    tracking = setting in ("qmdp", "probe", "neural")
+    tracking = setting in ("qmdp", "probe", "shift", "neural")
     belief = filt.init(observation) if filt is not None and tracking else None
     live = np.ones(E, dtype=bool)
     successes = np.zeros(E, dtype=bool)
@@ -227,7 +233,7 @@ def evaluate(
             classes = filt.model.most_likely_classes(readings)
             raw_ids = states.ids(torch.as_tensor(observation["peg_pose"]), classes)
             choice = greedy_action(lookup.values(raw_ids)[0], generator=generator)
-        elif setting in ("qmdp", "probe"):
+        elif setting in ("qmdp", "probe", "shift"):
             assert belief is not None
             assert filt is not None
             choice = qmdp_actions(lookup, *filt.particle_states(belief), generator=generator)
@@ -239,6 +245,16 @@ def evaluate(
                     threshold=probe_threshold,
                 )
                 choice = torch.where(press, PRESS, choice)
+            elif setting == "shift":
+                choice = shift_actions(
+                    choice,
+                    blind=torch.as_tensor(np.isnan(observation["peg_pose"]).all(-1)),
+                    spread=lateral_spread(filt, belief),
+                    sides=bottom_sides(
+                        filt.model.task, torch.as_tensor(observation["tactile"]).bool()
+                    ),
+                    threshold=probe_threshold,
+                )
         else:
             assert belief is not None
             assert filt is not None
@@ -306,7 +322,8 @@ def evaluate_settings(
         network: the neural Q function (``"neural"``).
         filters: belief filters by name: ``"qmdp"`` and ``"neural"`` run once with each,
             labelled ``"<setting> + <name>"`` (e.g. ``{"fitted": ..., "physics": ...}``).
-        probe_threshold: the lateral spread (m) above which ``"probe"`` presses.
+        probe_threshold: the lateral spread (m) above which ``"probe"`` and ``"shift"``
+            press.
     """
     env = PegInHole2DVector(num_envs=num_episodes, config=config, observation="noisy")
     evaluations = []

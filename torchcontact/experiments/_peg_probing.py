@@ -15,6 +15,8 @@ from torchcontact.envs import (
 
 #: The probing action: press the peg straight down (``"-y"``).
 PRESS = ACTION_NAMES.index("-y")
+#: The shifts of :func:`shift_actions`: ``"+x"`` and ``"-x"``.
+RIGHT, LEFT = ACTION_NAMES.index("+x"), ACTION_NAMES.index("-x")
 #: Default lateral standard deviation of the peg's bottom centre above which the probing
 #: policy presses (m).
 PROBE_THRESHOLD = 0.002
@@ -91,4 +93,55 @@ def probe_presses(
     return blind & (spread > threshold) & ~touched
 
 
-__all__ = ["PRESS", "PROBE_THRESHOLD", "bottom_touch", "lateral_spread", "probe_presses"]
+def bottom_sides(task: PegInHoleTask, readings: Tensor) -> Tensor:
+    """``(B, 2)`` whether a sensor on the left (``x < 0`` in the peg's frame) and on the right
+    half of the peg's bottom side reads a touch in ``readings (B, S)`` (bool)."""
+    bottom = task.config.tactile_counts[0]
+    x = task.sensors.positions[:bottom, 0]
+    hits = readings[:, :bottom]
+    return torch.stack([(hits & (x < 0)).any(-1), (hits & (x > 0)).any(-1)], -1)
+
+
+def shift_actions(
+    qmdp: Tensor,
+    *,
+    blind: Tensor,
+    spread: Tensor,
+    sides: Tensor,
+    threshold: float = PROBE_THRESHOLD,
+) -> Tensor:
+    """``(B,)`` actions of the touch-and-shift probe: read the touch as a lateral position.
+
+    While the camera is blind: if the bottom touches on one side only (that corner is on the
+    chamfer or the surface beside the hole, so the peg lies off the hole towards that side),
+    move the gripper away from it (``"-x"`` for the right corner, ``"+x"`` for the left); if
+    nothing touches and the belief's lateral spread exceeds ``threshold``, press down;
+    otherwise (seen, both corners on a surface, or a confident belief) take QMDP's action.
+    The policy bypasses the belief for the lateral correction: it tests whether touch carries
+    the information QMDP lacks.
+
+    Args:
+        qmdp: ``(B,)`` long QMDP actions.
+        blind: ``(B,)`` bool, the camera returned no pose.
+        spread: ``(B,)`` :func:`lateral_spread` of the belief, m.
+        sides: ``(B, 2)`` :func:`bottom_sides` of the latest readings.
+        threshold: lateral spread above which to press, m.
+    """
+    left, right = sides.unbind(-1)
+    press = blind & (spread > threshold) & ~(left | right)
+    out = torch.where(press, PRESS, qmdp)
+    out = torch.where(blind & right & ~left, LEFT, out)
+    return torch.where(blind & left & ~right, RIGHT, out)
+
+
+__all__ = [
+    "LEFT",
+    "PRESS",
+    "PROBE_THRESHOLD",
+    "RIGHT",
+    "bottom_sides",
+    "bottom_touch",
+    "lateral_spread",
+    "probe_presses",
+    "shift_actions",
+]
