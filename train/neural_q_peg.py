@@ -33,8 +33,8 @@ discounted return to the end of its episode instead of the bootstrapped target (
 evaluation of that behaviour; the greedy network is one step of policy improvement over it).
 The greedy network is evaluated every few rounds on validation episodes; the best (the
 untrained network, i.e. QMDP, included) is kept. Finally the settings are compared on the
-same fresh episodes (oracle, raw on the standard camera, QMDP, probe-then-QMDP on the
-occluded variant, neural). Writes TensorBoard logs, checkpoints,
+same fresh episodes (oracle, raw on the standard camera, QMDP, press-then-QMDP and the
+touch-and-shift probe on the occluded variant, neural). Writes TensorBoard logs, checkpoints,
 ``network.pt`` and ``results.md`` to a new run folder, ``runs/neural_q_peg__<seed>__<unix
 time>``; a killed run continues where its last checkpoint left it, to the same result, with
 ``--resume <that folder>`` (the same arguments; ``--rounds`` may grow).
@@ -157,8 +157,8 @@ class Args:
     the camera is blind and the belief's lateral spread exceeds --probe-threshold, until a
     bottom sensor fires (the scripted probe-then-insert policy on the network)"""
     probe_threshold: float = PROBE_THRESHOLD
-    """lateral spread of the belief above which probing presses, m (also the probe setting
-    of the final comparison)"""
+    """lateral spread of the belief above which probing presses, m (also the probe and shift
+    settings of the final comparison)"""
     press_penalty: float | None = None
     """with a value: the trust region measures advantages from the mean residual of the
     actions other than pressing ("-y"), weighs pressing's by this value and the others' by
@@ -349,7 +349,7 @@ def run(args: Args) -> dict[str, Any]:
         )
     online.load_state_dict(best["state"])
     network = deployed_network(lookup.table, online)
-    settings: tuple[Setting, ...] = ("oracle", "qmdp", "probe", "neural")
+    settings: tuple[Setting, ...] = ("oracle", "qmdp", "probe", "shift", "neural")
     if config.occlusion_radius == 0:  # the raw setting reads the camera's pose
         settings = ("oracle", "raw", "qmdp", "neural")
     evaluations = evaluate_settings(

@@ -125,7 +125,7 @@ def test_the_occluded_variant_trains_and_skips_the_raw_setting(
 ) -> None:
     """The camera of the variant returns NaN near the hole: the filter runs on touch there,
     and the raw setting (which reads the camera's pose) is left out of the comparison, the
-    probing one joins it. Probing behaviour and Monte Carlo targets train too."""
+    two probing ones join it. Probing behaviour and Monte Carlo targets train too."""
     result = module.run(
         _tiny(
             module,
@@ -137,7 +137,7 @@ def test_the_occluded_variant_trains_and_skips_the_raw_setting(
             targets="monte_carlo",
         )
     )
-    assert set(result["evaluations"]) == {"oracle", "qmdp", "probe", "neural"}
+    assert set(result["evaluations"]) == {"oracle", "qmdp", "probe", "shift", "neural"}
     text = (Path(result["run_dir"]) / "results.md").read_text()
     assert "occlusion radius 50 mm" in text
 
