@@ -96,10 +96,8 @@ from torchcontact.experiments._peg_learning import (
     run_round,
 )
 from torchcontact.experiments._peg_probing import (
-    LEFT,
     PRESS,
     PROBE_THRESHOLD,
-    RIGHT,
     bottom_sides,
     bottom_touch,
     lateral_spread,
@@ -160,12 +158,10 @@ __all__ = [
     "FITTERS",
     "FIT_METHODS",
     "GRASP_METHODS",
-    "LEFT",
     "LOCATION",
     "NUM_BELIEF_FEATURES",
     "PRESS",
     "PROBE_THRESHOLD",
-    "RIGHT",
     "SETTINGS",
     "STATISTICS_COLUMNS",
     "EstimatorRuns",

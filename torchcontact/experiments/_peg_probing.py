@@ -15,8 +15,8 @@ from torchcontact.envs import (
 
 #: The probing action: press the peg straight down (``"-y"``).
 PRESS = ACTION_NAMES.index("-y")
-#: The shifts of :func:`shift_actions`: ``"+x"`` and ``"-x"``.
-RIGHT, LEFT = ACTION_NAMES.index("+x"), ACTION_NAMES.index("-x")
+# The shifts of shift_actions: "+x" and "-x".
+_RIGHT, _LEFT = ACTION_NAMES.index("+x"), ACTION_NAMES.index("-x")
 #: Default lateral standard deviation of the peg's bottom centre above which the probing
 #: policy presses (m).
 PROBE_THRESHOLD = 0.002
@@ -130,15 +130,13 @@ def shift_actions(
     left, right = sides.unbind(-1)
     press = blind & (spread > threshold) & ~(left | right)
     out = torch.where(press, PRESS, qmdp)
-    out = torch.where(blind & right & ~left, LEFT, out)
-    return torch.where(blind & left & ~right, RIGHT, out)
+    out = torch.where(blind & right & ~left, _LEFT, out)
+    return torch.where(blind & left & ~right, _RIGHT, out)
 
 
 __all__ = [
-    "LEFT",
     "PRESS",
     "PROBE_THRESHOLD",
-    "RIGHT",
     "bottom_sides",
     "bottom_touch",
     "lateral_spread",
