@@ -2,7 +2,8 @@
 
     python train/dyna_q_peg.py            # first: the tabular Q, graph and belief model
     python train/neural_q_peg.py --tabular-run runs/dyna_q_peg__0__<unix time> --rounds 8
-    python train/neural_q_peg.py --tabular-run <that run> --occlusion-radius 0.05
+    python train/neural_q_peg.py --tabular-run <that run> --occlusion-radius 0.05 \
+        --probe-episodes 0.5 --targets monte_carlo --residual-penalty 0.1
 
 Starts from a finished ``dyna_q_peg`` run (``--tabular-run``, its run folder): its Q table,
 manipulation graph and fitted belief model. ``--occlusion-radius`` (and ``--vision-sigma``) run
@@ -23,10 +24,17 @@ trust region around QMDP's policy: ``--residual-penalty`` times the mean square 
 residual's action-dependent part ``g(z, a) − mean_b g(z, b)`` (the part common to all
 actions, QMDP's optimism about the belief's value, changes no decision and is free). The buffer
 stores the QMDP values of each belief (``A``) with its compact features (``F``), not the
-probabilities over all states: with a frozen head they are all the network needs. The greedy
-network is evaluated every few rounds on validation episodes; the best (the untrained network,
-i.e. QMDP, included) is kept. Finally the settings are compared on the same fresh episodes
-(oracle, raw on the standard camera, QMDP, neural). Writes TensorBoard logs, checkpoints,
+probabilities over all states: with a frozen head they are all the network needs. Where the
+camera is blind, QMDP never acts to find out where the peg is: ``--probe-episodes`` lets a
+fraction of the training episodes probe first (press the peg down while blind and laterally
+uncertain until a bottom sensor fires, :func:`~torchcontact.experiments.probe_presses`), so
+the data hold what probing leads to, and ``--targets monte_carlo`` fits each step's
+discounted return to the end of its episode instead of the bootstrapped target (a Q
+evaluation of that behaviour; the greedy network is one step of policy improvement over it).
+The greedy network is evaluated every few rounds on validation episodes; the best (the
+untrained network, i.e. QMDP, included) is kept. Finally the settings are compared on the
+same fresh episodes (oracle, raw on the standard camera, QMDP, press-then-QMDP and the
+touch-and-shift probe on the occluded variant, neural). Writes TensorBoard logs, checkpoints,
 ``network.pt`` and ``results.md`` to a new run folder, ``runs/neural_q_peg__<seed>__<unix
 time>``; a killed run continues where its last checkpoint left it, to the same result, with
 ``--resume <that folder>`` (the same arguments; ``--rounds`` may grow).
@@ -52,17 +60,23 @@ from torchcontact.envs import (
 from torchcontact.experiments import (
     CHECKPOINT,
     NUM_BELIEF_FEATURES,
+    PRESS,
+    PROBE_THRESHOLD,
     PotentialShaping,
     QLookup,
     RunLog,
     Setting,
     belief_features,
+    bottom_touch,
+    check_choice,
     check_int,
     check_name,
     check_real,
     evaluate,
     evaluate_settings,
+    lateral_spread,
     open_run,
+    probe_presses,
     read_checkpoint,
     results_table,
     round_seed,
@@ -78,6 +92,8 @@ from torchcontact.rl import (
 )
 
 DTYPE = torch.float32
+#: The targets of ``--targets``.
+_TARGETS = ("td", "monte_carlo")
 #: The checkpoint's entries besides ``"args"``.
 _SAVED = ("round", "online", "optimizer", "buffer", "counters", "history", "best")
 
@@ -136,6 +152,22 @@ class Args:
     """validation episodes (the same every time)"""
     final_episodes: int = 200
     """episodes per setting in the final comparison"""
+    probe_episodes: float = 0.0
+    """fraction of the training episodes whose behaviour probes: presses the peg down while
+    the camera is blind and the belief's lateral spread exceeds --probe-threshold, until a
+    bottom sensor fires (the scripted probe-then-insert policy on the network)"""
+    probe_threshold: float = PROBE_THRESHOLD
+    """lateral spread of the belief above which probing presses, m (also the probe and shift
+    settings of the final comparison)"""
+    press_penalty: float | None = None
+    """with a value: the trust region measures advantages from the mean residual of the
+    actions other than pressing ("-y"), weighs pressing's by this value and the others' by
+    --residual-penalty (a large one keeps their order QMDP's: the residual then learns when
+    to press, the probing decision); None: every action's by --residual-penalty"""
+    targets: str = "td"
+    """td: double-DQN targets bootstrapped from a frozen copy; monte_carlo: each step's
+    discounted shaped return to the end of its episode (fitted Q evaluation of the
+    behaviour, whose greedy policy is one step of policy improvement)"""
 
 
 @dataclasses.dataclass
@@ -192,6 +224,11 @@ def check_args(args: Args) -> _Tabular:
     check_real("vision_sigma", args.vision_sigma, low=0.0)
     check_real("epsilon_start", args.epsilon_start, low=0.0, high=1.0)
     check_real("epsilon_end", args.epsilon_end, low=0.0, high=1.0)
+    check_real("probe_episodes", args.probe_episodes, low=0.0, high=1.0)
+    check_real("probe_threshold", args.probe_threshold, low=0.0)
+    if args.press_penalty is not None:
+        check_real("press_penalty", args.press_penalty, low=0.0)
+    check_choice("targets", args.targets, _TARGETS)
     tabular = _load_tabular(args)
     K = tabular.model.num_modes
     check_int("particles", args.particles, low=K, why="the belief model's number of modes K")
@@ -312,7 +349,7 @@ def run(args: Args) -> dict[str, Any]:
         )
     online.load_state_dict(best["state"])
     network = deployed_network(lookup.table, online)
-    settings: tuple[Setting, ...] = ("oracle", "qmdp", "neural")
+    settings: tuple[Setting, ...] = ("oracle", "qmdp", "probe", "shift", "neural")
     if config.occlusion_radius == 0:  # the raw setting reads the camera's pose
         settings = ("oracle", "raw", "qmdp", "neural")
     evaluations = evaluate_settings(
@@ -323,6 +360,7 @@ def run(args: Args) -> dict[str, Any]:
         seed=args.seed + 104_729,
         filt=filt,
         network=network,
+        probe_threshold=args.probe_threshold,
     )
     for e in evaluations:
         writer.add_scalar(
@@ -398,6 +436,11 @@ def _collect(
 ) -> dict[str, float]:
     """One ε-greedy episode per environment with the filter in the loop, into the buffer.
 
+    A fraction ``args.probe_episodes`` of the episodes (drawn per round) probes first
+    (:func:`~torchcontact.experiments.probe_presses`); with ``args.targets ==
+    "monte_carlo"`` each step is stored with its discounted shaped return to the episode's end
+    as reward, and as terminal.
+
     Everything random in a round (episodes, filter, exploration) is seeded by the round's
     index, and the buffer's sampler is checkpointed, so a resumed run equals a straight one.
     """
@@ -412,6 +455,9 @@ def _collect(
     live = np.ones(B, dtype=bool)
     returns, lengths = np.zeros(B), np.zeros(B, dtype=np.int64)
     successes = np.zeros(B, dtype=bool)
+    probing = torch.rand(B, generator=generator) < args.probe_episodes
+    touched = torch.zeros(B, dtype=torch.bool)
+    steps: list[dict[str, torch.Tensor]] = []
     epsilon = schedule(counters["transitions"])
     while live.any():
         epsilon = schedule(counters["transitions"])
@@ -421,8 +467,15 @@ def _collect(
         greedy = (values + noise).argmax(-1)
         random = torch.randint(filt.model.num_actions, (B,), generator=generator)
         explore = torch.rand(B, generator=generator) < epsilon
-        actions = torch.where(explore, random, greedy).numpy()
+        press = probing & probe_presses(
+            blind=torch.as_tensor(np.isnan(observation["peg_pose"]).all(-1)),
+            spread=lateral_spread(filt, belief),
+            touched=touched,
+            threshold=args.probe_threshold,
+        )
+        actions = torch.where(press, PRESS, torch.where(explore, random, greedy)).numpy()
         observation, reward, terminated, truncated, info = env.step(actions)
+        touched |= press & bottom_touch(filt.model.task, torch.as_tensor(observation["tactile"]))
         belief = filt.step(belief, actions, observation, generator=generator)
         next_inputs = _inputs(filt, belief, lookup)
         next_potential = shaping.potential(env.states, info["peg_pose"], depth)
@@ -433,13 +486,15 @@ def _collect(
             terminated=terminated,
             gamma=gamma,
         )
-        index = torch.as_tensor(np.flatnonzero(live))
-        buffer.add(
-            observation=inputs[index],
-            action=torch.as_tensor(actions)[index],
-            reward=torch.as_tensor(shaped)[index],
-            next_observation=next_inputs[index],
-            terminal=torch.as_tensor(terminated)[index],
+        steps.append(
+            {
+                "observation": inputs,
+                "action": torch.as_tensor(actions),
+                "reward": torch.as_tensor(shaped),
+                "next_observation": next_inputs,
+                "terminal": torch.as_tensor(terminated),
+                "live": torch.as_tensor(live),
+            }
         )
         counters["transitions"] += int(live.sum())
         returns[live] += reward[live]
@@ -447,6 +502,14 @@ def _collect(
         successes |= live & info["success"]
         live = live & ~(terminated | truncated)
         inputs, potential = next_inputs, next_potential
+    if args.targets == "monte_carlo":  # each step's discounted return to its episode's end
+        to_go = torch.zeros(B, dtype=torch.float64)
+        for step in reversed(steps):
+            to_go = torch.where(step["live"], step["reward"] + gamma * to_go, 0.0)
+            step["reward"], step["terminal"] = to_go.clone(), torch.ones(B, dtype=torch.bool)
+    for step in steps:
+        index = torch.nonzero(step["live"]).squeeze(-1)
+        buffer.add(**{k: v[index] for k, v in step.items() if k != "live"})
     return {
         "round": round_index,
         "transitions": counters["transitions"],
@@ -468,8 +531,13 @@ def _fit(
     gamma: float,
 ) -> dict[str, float]:
     """Fitted Q iteration on the buffer: per iteration a frozen target and Adam steps on the
-    double-DQN loss plus the trust-region penalty."""
+    double-DQN loss (or the Monte Carlo regression: terminal rows) plus the trust-region
+    penalty, ``residual_penalty`` on every action's advantage, or with ``press_penalty`` that
+    weight on pressing's advantage over the other actions' mean residual."""
     losses, residuals = [], []
+    A = online.num_actions
+    others = torch.arange(A) != PRESS
+    weights = torch.where(others, args.residual_penalty, args.press_penalty or 0.0).to(DTYPE)
     for _ in range(args.fitted_iterations):
         update_target(target=target, online=online)
         for _ in range(args.updates_per_iteration):
@@ -477,10 +545,17 @@ def _fit(
             residual = online.residual_values(batch.observations)
             # Only the part that differs between actions changes decisions: the common part
             # (QMDP's optimism about the value of the belief) is free.
-            penalty = (residual - residual.mean(-1, keepdim=True)).square().mean()
+            if args.press_penalty is None:
+                advantage = residual - residual.mean(-1, keepdim=True)
+                trust = args.residual_penalty * advantage.square().mean()
+            else:  # the other actions' mean is the common part; pressing has its own weight
+                common = residual[:, others].mean(-1, keepdim=True)
+                advantage = residual - common
+                trust = (weights * advantage.square()).mean()
+            penalty = advantage.square().mean()
             loss = dqn_loss(online, target, batch, gamma, double=True)
             optimizer.zero_grad()
-            (loss + args.residual_penalty * penalty).backward()
+            (loss + trust).backward()
             optimizer.step()
             counters["updates"] += 1
             losses.append(float(loss.detach()))

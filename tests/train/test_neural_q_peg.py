@@ -13,8 +13,9 @@ import pytest
 import torch
 
 from tests.train import assert_logged, load_script
-from torchcontact.experiments import NUM_BELIEF_FEATURES
-from torchcontact.rl import DynaQ
+from torchcontact.envs import PegInHole2DVector, PegInHoleFilter
+from torchcontact.experiments import NUM_BELIEF_FEATURES, QLookup
+from torchcontact.rl import DynaQ, EpsilonSchedule, ReplayBuffer
 
 
 @pytest.fixture(scope="module")
@@ -123,9 +124,20 @@ def test_the_occluded_variant_trains_and_skips_the_raw_setting(
     module: ModuleType, tabular_run: Path, tmp_path: Path
 ) -> None:
     """The camera of the variant returns NaN near the hole: the filter runs on touch there,
-    and the raw setting (which reads the camera's pose) is left out of the comparison."""
-    result = module.run(_tiny(module, tmp_path, tabular_run, rounds=1, occlusion_radius=0.05))
-    assert set(result["evaluations"]) == {"oracle", "qmdp", "neural"}
+    and the raw setting (which reads the camera's pose) is left out of the comparison, the
+    two probing ones join it. Probing behaviour and Monte Carlo targets train too."""
+    result = module.run(
+        _tiny(
+            module,
+            tmp_path,
+            tabular_run,
+            rounds=1,
+            occlusion_radius=0.05,
+            probe_episodes=1.0,
+            targets="monte_carlo",
+        )
+    )
+    assert set(result["evaluations"]) == {"oracle", "qmdp", "probe", "shift", "neural"}
     text = (Path(result["run_dir"]) / "results.md").read_text()
     assert "occlusion radius 50 mm" in text
 
@@ -164,6 +176,9 @@ def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
         ({"residual_penalty": -1.0}, r"residual_penalty: expected a finite number >= 0"),
         ({"occlusion_radius": -0.1}, r"occlusion_radius: expected a finite number >= 0"),
         ({"name": ""}, r"name: expected a non-empty name"),
+        ({"probe_episodes": 1.5}, r"probe_episodes: expected a finite number in \[0.0, 1.0\]"),
+        ({"press_penalty": -1.0}, r"press_penalty: expected a finite number >= 0"),
+        ({"targets": "mc"}, r"targets: expected one of \('td', 'monte_carlo'\)"),
     ],
 )
 def test_bad_arguments_fail_before_any_work(
@@ -188,3 +203,114 @@ def test_a_missing_tabular_run_is_named(module: ModuleType, tmp_path: Path) -> N
     with pytest.raises(ValueError, match=r"tabular_run .* run train/dyna_q_peg\.py first"):
         module.run(_tiny(module, tmp_path / "runs", tmp_path / "nothing"))
     assert not (tmp_path / "runs").exists()
+
+
+@pytest.mark.bitwise("a stored input is a copy of the next step's: rows are matched exactly")
+def test_monte_carlo_targets_are_the_discounted_returns_of_the_shaped_rewards(
+    module: ModuleType, tabular_run: Path, tmp_path: Path
+) -> None:
+    """One round collected twice from the same seed (the same episodes and actions): with
+    Monte Carlo targets each row's reward is the step's shaped reward (the TD buffer's) plus
+    γ times the target of the same episode's next step (the row whose input is this row's
+    next input), the last step's its shaped reward alone; every row is terminal."""
+    stored = {}
+    for targets in ("td", "monte_carlo"):
+        args = _tiny(
+            module, tmp_path, tabular_run, targets=targets, probe_episodes=0.5, buffer_size=4096
+        )
+        tabular = module.check_args(args)
+        lookup = QLookup(tabular.agent, tabular.model.task.states)
+        filt = PegInHoleFilter(tabular.model, num_particles=args.particles)
+        config = dataclasses.replace(tabular.model.task.config, occlusion_radius=0.05)
+        env = PegInHole2DVector(num_envs=3, config=config, observation="noisy")
+        online = module.compact_network(args, 7)
+        buffer = ReplayBuffer(args.buffer_size, online.input_size, dtype=torch.float32, seed=0)
+        module._collect(
+            args,
+            env,
+            filt,
+            lookup,
+            tabular,
+            online=online,
+            buffer=buffer,
+            schedule=EpsilonSchedule(0.2, 0.05, 20),
+            counters={"transitions": 0, "updates": 0},
+            round_index=0,
+        )
+        state = buffer.state_dict()
+        stored[targets] = {
+            k: state[k][: state["size"]]
+            for k in ("observations", "actions", "rewards", "next_observations", "terminals")
+        }
+    td, mc = stored["td"], stored["monte_carlo"]
+    assert (td["actions"] == mc["actions"]).all()
+    assert (td["observations"] == mc["observations"]).all()
+    assert mc["terminals"].all()
+    gamma = DynaQ.from_state_dict(
+        torch.load(tabular_run / "checkpoint.pt", weights_only=False)["agent"]
+    ).gamma
+    rows = td["observations"].shape[0]
+    same = (td["next_observations"][:, None] == td["observations"][None]).all(-1)  # (R, R)
+    later = torch.arange(rows)[None] > torch.arange(rows)[:, None]
+    follows = same & later
+    ends = 0
+    for j in range(rows):
+        following = torch.nonzero(follows[j]).flatten()
+        expected = float(td["rewards"][j])
+        if following.numel():
+            expected += gamma * float(mc["rewards"][following[0]])
+        else:
+            ends += 1
+        assert float(mc["rewards"][j]) == pytest.approx(expected, rel=1e-5, abs=1e-6)
+    assert ends == 3  # one end per episode
+
+
+def test_the_press_trust_region_leaves_the_other_actions_in_qmdp_order(module: ModuleType) -> None:
+    """Monte Carlo rows whose targets favour pressing ("-y") by 0.3 and another action by
+    0.2 on half the beliefs: with a heavy penalty on every advantage but pressing's, the
+    fitted residual raises pressing there, and the other actions' residuals stay within a
+    small fraction of that gap of their common mean (the regression alone would lift the
+    other action too, by about 0.2)."""
+    args = module.Args(
+        tabular_run="unused",
+        hidden=16,
+        learning_rate=1e-2,
+        fitted_iterations=1,
+        updates_per_iteration=400,
+        batch_size=128,
+        residual_penalty=100.0,
+        press_penalty=0.0,
+        targets="monte_carlo",
+    )
+    generator = torch.Generator().manual_seed(0)
+    online = module.compact_network(args, 7)
+    target = module.compact_network(args, 7)
+    R = 2048
+    inputs = torch.randn(R, online.input_size, generator=generator)
+    inputs[:, :7] = 0.0  # QMDP values 0: the residual is the whole value
+    actions = torch.randint(7, (R,), generator=generator)
+    favoured = inputs[:, 7] > 0  # half the beliefs
+    press, other = 4, 1
+    rewards = torch.where(favoured & (actions == press), 0.3, 0.0)
+    rewards = rewards + torch.where(favoured & (actions == other), 0.2, 0.0)
+    buffer = ReplayBuffer(R, online.input_size, dtype=torch.float32, seed=0)
+    buffer.add(
+        observation=inputs,
+        action=actions,
+        reward=rewards,
+        next_observation=inputs,
+        terminal=torch.ones(R, dtype=torch.bool),
+    )
+    optimizer = torch.optim.Adam(
+        [p for p in online.parameters() if p.requires_grad], lr=args.learning_rate
+    )
+    counters = {"transitions": R, "updates": 0}
+    module._fit(args, online, target, optimizer, buffer, counters, gamma=0.99)
+    assert counters["updates"] == 400
+    with torch.no_grad():
+        residual = online.residual_values(inputs[favoured])
+    rest = torch.arange(7) != press
+    common = residual[:, rest].mean(-1)
+    lift = float((residual[:, press] - common).mean())
+    assert lift > 0.15  # pressing's advantage is learned where it pays
+    assert float((residual[:, rest] - common[:, None]).abs().max()) < 0.2 * lift

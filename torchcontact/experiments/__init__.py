@@ -4,7 +4,8 @@ Peg-in-hole (:mod:`torchcontact.envs`): :func:`run_round` trains (or evaluates) 
 :class:`~torchcontact.rl.DynaQ` agent on rounds of batched episodes with
 :class:`PotentialShaping` and records the steps (:class:`PegLearning` holds the settings that
 learn the task); :func:`evaluate` executes the learned policy under uncertainty (oracle, raw
-observation, QMDP over the RBPF belief with :func:`qmdp_actions`, neural Q on
+observation, QMDP over the RBPF belief with :func:`qmdp_actions`, QMDP that first probes by
+touch where the camera is blind (:func:`probe_presses`, :func:`lateral_spread`), neural Q on
 :func:`belief_features`), with :class:`QLookup` mapping manipulation-state ids to Q rows.
 Scripts check their arguments with :func:`check_int`, :func:`check_real`, :func:`check_choice`
 and :func:`check_name` before any work, get a new run folder or the one to resume with
@@ -146,6 +147,15 @@ from torchcontact.experiments._peg_learning import (
     round_seed,
     run_round,
 )
+from torchcontact.experiments._peg_probing import (
+    PRESS,
+    PROBE_THRESHOLD,
+    bottom_sides,
+    bottom_touch,
+    lateral_spread,
+    probe_presses,
+    shift_actions,
+)
 from torchcontact.experiments._q_lookup import QLookup
 from torchcontact.experiments._sweep import (
     STATISTICS_COLUMNS,
@@ -204,6 +214,8 @@ __all__ = [
     "LOCATION",
     "NUM_BELIEF_FEATURES",
     "PAD_LINKS",
+    "PRESS",
+    "PROBE_THRESHOLD",
     "RBPF_METHODS",
     "SETTINGS",
     "STATISTICS_COLUMNS",
@@ -237,6 +249,8 @@ __all__ = [
     "barrett_box_scene",
     "barrett_member",
     "belief_features",
+    "bottom_sides",
+    "bottom_touch",
     "box_contact_model",
     "box_filter_scene",
     "box_prior",
@@ -271,6 +285,7 @@ __all__ = [
     "grasp_trials_from_logs",
     "hand_pads",
     "joint_motion",
+    "lateral_spread",
     "launched_grasps",
     "load_checkpoint",
     "logged_settings",
@@ -287,6 +302,7 @@ __all__ = [
     "plot_grasp_snapshots",
     "plot_mode_timeline",
     "plot_tracking_errors",
+    "probe_presses",
     "qmdp_actions",
     "read_checkpoint",
     "replay",
@@ -306,6 +322,7 @@ __all__ = [
     "save_checkpoint",
     "scalar_metrics",
     "seed_statistics",
+    "shift_actions",
     "simulate_grasps",
     "sliding_evidence",
     "sliding_logs",

@@ -13,6 +13,7 @@ import torch
 from numpy.typing import NDArray
 from torch import Tensor
 
+from torchcontact._checks import check_real
 from torchcontact.envs import (
     NUM_CONTACT_CLASSES,
     PegBelief,
@@ -21,11 +22,20 @@ from torchcontact.envs import (
     PegInHoleConfig,
     PegInHoleFilter,
 )
+from torchcontact.experiments._peg_probing import (
+    PRESS,
+    PROBE_THRESHOLD,
+    bottom_sides,
+    bottom_touch,
+    lateral_spread,
+    probe_presses,
+    shift_actions,
+)
 from torchcontact.experiments._q_lookup import QLookup
 from torchcontact.rl import QNetwork, greedy_action, qmdp_action
 
 #: The execution settings compared by :func:`evaluate`.
-Setting = Literal["oracle", "raw", "qmdp", "neural"]
+Setting = Literal["oracle", "raw", "qmdp", "probe", "shift", "neural"]
 SETTINGS: tuple[str, ...] = get_args(Setting)
 #: Belief features after the state probabilities (see :func:`belief_features`).
 NUM_BELIEF_FEATURES = 8 + NUM_CONTACT_CLASSES
@@ -145,6 +155,7 @@ def evaluate(
     filt: PegInHoleFilter | None = None,
     network: QNetwork | None = None,
     label: str | None = None,
+    probe_threshold: float = PROBE_THRESHOLD,
 ) -> Evaluation:
     """Run one episode per sub-environment of ``env`` (noisy observations) under a setting.
 
@@ -154,6 +165,12 @@ def evaluate(
       (:meth:`~torchcontact.envs.PegInHoleBeliefModel.most_likely_classes` of ``filt``'s
       model, a fitted one);
     * ``"qmdp"``: QMDP over the particles of ``filt`` (:func:`qmdp_actions`);
+    * ``"probe"``: probe, then insert: QMDP, except that while the camera is blind and the
+      belief's lateral spread exceeds ``probe_threshold`` it presses the peg down until a
+      bottom sensor fires (:func:`probe_presses`, once per episode), for the occluded variant;
+    * ``"shift"``: touch-and-shift: QMDP, except that while the camera is blind it moves away
+      from a bottom corner that touches alone, and presses while nothing touches and the
+      spread exceeds ``probe_threshold`` (:func:`shift_actions`);
     * ``"neural"``: ``network`` on :func:`belief_features` of ``filt``'s belief.
 
     Every setting takes the action of highest value with one tie rule,
@@ -173,10 +190,13 @@ def evaluate(
             sensors).
         network: the neural Q function (``"neural"``).
         label: the :attr:`Evaluation.setting` (default: ``setting``).
+        probe_threshold: the lateral spread (m) above which ``"probe"`` and ``"shift"``
+            press.
 
     Raises:
         ValueError: a missing or invalid argument.
     """
+    check_real("probe_threshold", probe_threshold, low=0.0)
     if setting not in SETTINGS:
         raise ValueError(f"setting must be one of {SETTINGS}, got {setting!r}")
     if env.observation_mode != "noisy":
@@ -185,20 +205,22 @@ def evaluate(
         raise ValueError(f"filt is required for setting {setting!r} (its model reads the sensors)")
     if setting == "neural" and network is None:
         raise ValueError("network is required for setting 'neural'")
-    if setting == "raw" and not isinstance(getattr(filt, "model", None), PegInHoleBeliefModel):
-        raise ValueError("filt must run on a PegInHoleBeliefModel for setting 'raw'")
+    fitted = isinstance(getattr(filt, "model", None), PegInHoleBeliefModel)
+    if setting in ("raw", "probe", "shift") and not fitted:
+        raise ValueError(f"filt must run on a PegInHoleBeliefModel for setting {setting!r}")
     E = env.num_envs
     states = env.states
     generator = torch.Generator().manual_seed(seed)
     first, info = env.reset(seed=seed)
     observation = _noisy(first)
-    tracking = setting in ("qmdp", "neural")
+    tracking = setting in ("qmdp", "probe", "shift", "neural")
     belief = filt.init(observation) if filt is not None and tracking else None
     live = np.ones(E, dtype=bool)
     successes = np.zeros(E, dtype=bool)
     lengths = np.zeros(E, dtype=np.int64)
     seconds, decisions = 0.0, 0
     log_prob, scored = 0.0, 0
+    touched = torch.zeros(E, dtype=torch.bool)
     while live.any():
         start = time.perf_counter()
         if setting == "oracle":
@@ -211,10 +233,28 @@ def evaluate(
             classes = filt.model.most_likely_classes(readings)
             raw_ids = states.ids(torch.as_tensor(observation["peg_pose"]), classes)
             choice = greedy_action(lookup.values(raw_ids)[0], generator=generator)
-        elif setting == "qmdp":
+        elif setting in ("qmdp", "probe", "shift"):
             assert belief is not None
             assert filt is not None
             choice = qmdp_actions(lookup, *filt.particle_states(belief), generator=generator)
+            if setting == "probe":
+                press = probe_presses(
+                    blind=torch.as_tensor(np.isnan(observation["peg_pose"]).all(-1)),
+                    spread=lateral_spread(filt, belief),
+                    touched=touched,
+                    threshold=probe_threshold,
+                )
+                choice = torch.where(press, PRESS, choice)
+            elif setting == "shift":
+                choice = shift_actions(
+                    choice,
+                    blind=torch.as_tensor(np.isnan(observation["peg_pose"]).all(-1)),
+                    spread=lateral_spread(filt, belief),
+                    sides=bottom_sides(
+                        filt.model.task, torch.as_tensor(observation["tactile"]).bool()
+                    ),
+                    threshold=probe_threshold,
+                )
         else:
             assert belief is not None
             assert filt is not None
@@ -226,6 +266,9 @@ def evaluate(
         seconds += time.perf_counter() - start
         next_observation, _, terminated, truncated, info = env.step(actions)
         observation = _noisy(next_observation)
+        if setting == "probe" and filt is not None:
+            readings = torch.as_tensor(observation["tactile"]).bool()
+            touched |= press & bottom_touch(filt.model.task, readings)
         if belief is not None and filt is not None:
             start = time.perf_counter()
             belief = filt.step(belief, actions, observation, generator=generator)
@@ -264,6 +307,7 @@ def evaluate_settings(
     filt: PegInHoleFilter | None = None,
     network: QNetwork | None = None,
     filters: Mapping[str, PegInHoleFilter] | None = None,
+    probe_threshold: float = PROBE_THRESHOLD,
 ) -> list[Evaluation]:
     """:func:`evaluate` each setting on the same ``num_episodes`` seeded episodes.
 
@@ -278,6 +322,8 @@ def evaluate_settings(
         network: the neural Q function (``"neural"``).
         filters: belief filters by name: ``"qmdp"`` and ``"neural"`` run once with each,
             labelled ``"<setting> + <name>"`` (e.g. ``{"fitted": ..., "physics": ...}``).
+        probe_threshold: the lateral spread (m) above which ``"probe"`` and ``"shift"``
+            press.
     """
     env = PegInHole2DVector(num_envs=num_episodes, config=config, observation="noisy")
     evaluations = []
@@ -297,7 +343,15 @@ def evaluate_settings(
                 )
         else:
             evaluations.append(
-                evaluate(env, setting, lookup=lookup, seed=seed, filt=filt, network=network)
+                evaluate(
+                    env,
+                    setting,
+                    lookup=lookup,
+                    seed=seed,
+                    filt=filt,
+                    network=network,
+                    probe_threshold=probe_threshold,
+                )
             )
     return evaluations
 
