@@ -504,10 +504,9 @@ class SpatialContactModel:
             assembled, _ = robot_contact_problem(
                 self.scene, moved.reshape(-1, STATE_DIM), control.expand(D)
             )
-            assembled = assembled.reshape(P, D)
+            assembled = _select_slots(assembled, slots).reshape(P, D)
         with torch.no_grad():
-            at_x = _select_slots(assembled.map_tensors(lambda t: t[:, 0].detach()), slots)
-            problem = _per_mode(at_x, K)  # (P, K)
+            problem = _per_mode(assembled.map_tensors(lambda t: t[:, 0].detach()), K)  # (P, K)
             if self.inconsistency_penalty > 0:
                 # The step and the consistency check's (gaps closed) in one solve.
                 closed = self._closed_gaps(problem, modes)
@@ -542,8 +541,7 @@ class SpatialContactModel:
             copies = {
                 name: leaves.get(name, _per_mode_copy(value, K)) for name, value in fields.items()
             }
-            # The slots selected past the leaves: the batched backward starts at the assembly.
-            problem_d = _select_slots(ContactProblem.unchecked(h=assembled.h, **copies), slots)
+            problem_d = ContactProblem.unchecked(h=assembled.h, **copies)
             v_next = solve_mode_unchecked(
                 problem_d, modes.unsqueeze(2).expand(P, K, D, -1), initial_impulses=start
             ).v_next
