@@ -151,22 +151,22 @@ class SpatialContactModel:
     so that particle :math:`i` with mean :math:`\mu_i` predicts
     :math:`\mathrm{retract}(z, F_k\, \mathrm{local}(\bar x, \mu_i) + c_k)`
     (:class:`~torchcontact.filters.ModeDynamics` with ``origin`` :math:`\bar x` and ``chart``
-    :math:`z`). The Jacobian is exact (float64, automatic differentiation of the step through
-    :func:`~torchcontact.sim.contact_problem` and :func:`~torchcontact.contact.solve_mode` in
-    reverse mode: one assembly for the twelve tangent directions, the ``K`` modes' solves in one
-    batch, and their cotangents back through the assembly in one backward pass batched over the
-    modes): the mode solve is differentiated from its converged impulses (``initial_impulses``),
-    where its iterated Tikhonov iterations are a fixed point, so the derivative is that of the
-    converged system (the implicit-function derivative, whose iterates converge as the solve's
-    own), not that of a finite number of iterations from zero, which differs at redundant
-    contacts. This is exact wherever the mode's equalities fix the step (sticking redundant
-    corners, a box sliding on four corners: the friction rows share the normal rows' redundancy;
-    tested against finite differences). Where they do not, i.e. the step depends on how
-    ``solve_mode`` splits the impulses among redundant rows (a finger's sticking friction that
-    could carry part of the weight of a box sliding on its corners), the Jacobian is that of the
-    steps whose split stays nearest the converged one, not of ``solve_mode``'s own split rule.
-    The discrete choices of the geometry (each slot's closest features, the candidate slots, the
-    friction directions' hemisphere of :func:`~torchcontact.sim.tangent_basis`) are held.
+    :math:`z`). The Jacobian is exact (float64, automatic differentiation of the
+    step through :func:`~torchcontact.sim.contact_problem` and
+    :func:`~torchcontact.contact.solve_mode`, the twelve tangent directions and all ``K``
+    modes in one batch): the mode solve is differentiated from its converged impulses
+    (``initial_impulses``), where its iterated Tikhonov iterations are a fixed point, so the
+    derivative is that of the converged system (the implicit-function derivative, whose
+    iterates converge as the solve's own), not that of a finite number of iterations from
+    zero, which differs at redundant contacts. This is exact wherever the mode's equalities
+    fix the step (sticking redundant corners, a box sliding on four corners: the friction rows
+    share the normal rows' redundancy; tested against finite differences). Where they do
+    not, i.e. the step depends on how ``solve_mode`` splits the impulses among redundant
+    rows (a finger's sticking friction that could carry part of the weight of a box sliding
+    on its corners), the Jacobian is that of the steps whose split stays nearest the
+    converged one, not of ``solve_mode``'s own split rule. The discrete choices of the
+    geometry (each slot's closest features, the candidate slots, the friction directions'
+    hemisphere of :func:`~torchcontact.sim.tangent_basis`) are held.
 
     Modes ruled out. A mode whose equalities contradict each other at :math:`\bar x` (its
     ``solve_mode`` does not converge) gets the log-weight :math:`-\infty` for the step
@@ -493,20 +493,19 @@ class SpatialContactModel:
         P, K, D = x.shape[0], self.num_modes, TANGENT_DIM
         slots = self._acting_slots.to(x.device)
         modes = self.modes.to(x.device).index_select(1, slots).expand(P, K, -1)
-        # One assembly at P·12 points retract(x, δ), δ = 0 requiring grad: its values are the
-        # problem at x, replica i (a zero step along direction i) carries row i. The modes'
-        # solves run on copies of it (leaves, batch (P, K, 12)); their cotangents pass back
-        # through the assembly in one backward pass batched over the K modes (vmap), so the
-        # assembly and its backward cost one mode's operations for all K.
+        # One assembly: a batch of P·K·12 points retract(x, δ), δ = 0 requiring grad, whose
+        # values are the problems at x (in every mode) and whose derivatives along δ are
+        # taken by reverse-mode differentiation (faster here than forward mode): replica
+        # (p, k, i) yields row i of mode k's Jacobian at point p.
         with torch.enable_grad():
-            along = x.new_zeros(P, D, D).requires_grad_()
-            moved = SE3.retract(x[:, None, :].expand(P, D, STATE_DIM), along)
+            delta = x.new_zeros(P, K, D, D).requires_grad_()
+            moved = SE3.retract(x[:, None, None, :].expand(P, K, D, STATE_DIM), delta)
             assembled, _ = robot_contact_problem(
-                self.scene, moved.reshape(-1, STATE_DIM), control.expand(D)
+                self.scene, moved.reshape(-1, STATE_DIM), control.expand(K * D)
             )
-            assembled = _select_slots(assembled, slots).reshape(P, D)
+            problem_d = _select_slots(assembled, slots).reshape(P, K, D)
         with torch.no_grad():
-            problem = _per_mode(assembled.map_tensors(lambda t: t[:, 0].detach()), K)  # (P, K)
+            problem = problem_d.map_tensors(lambda t: t[:, :, 0].detach())  # (P, K) at x
             if self.inconsistency_penalty > 0:
                 # The step and the consistency check's (gaps closed) in one solve.
                 closed = self._closed_gaps(problem, modes)
@@ -529,43 +528,13 @@ class SpatialContactModel:
             solution.pn.unsqueeze(2).expand(P, K, D, -1),
             solution.pt.unsqueeze(2).expand(P, K, D, *solution.pt.shape[-2:]),
         )
-        fields = {name: getattr(assembled, attribute) for name, attribute in _FIELDS.items()}
         with torch.enable_grad():
-            delta = x.new_zeros(P, K, D, D).requires_grad_()
-            # Copies (P, K, 12) of the fields that depend on δ, leaves of the modes' solves.
-            leaves = {
-                name: _per_mode_copy(value.detach(), K).requires_grad_()
-                for name, value in fields.items()
-                if value.requires_grad
-            }
-            copies = {
-                name: leaves.get(name, _per_mode_copy(value, K)) for name, value in fields.items()
-            }
-            problem_d = ContactProblem.unchecked(h=assembled.h, **copies)
             v_next = solve_mode_unchecked(
                 problem_d, modes.unsqueeze(2).expand(P, K, D, -1), initial_impulses=start
             ).v_next
-            direct = SE3.retract(x[:, None, None, :].expand(P, K, D, STATE_DIM), delta)
-            stepped = self._advance(direct, v_next)  # (P, K, 12, 13)
+            stepped = self._advance(moved, v_next)  # (P, K, 12, 13)
             local = SE3.local(chart.unsqueeze(2).expand_as(stepped), stepped)
-            F, *cotangents = torch.autograd.grad(
-                local.diagonal(dim1=-2, dim2=-1).sum(),
-                [delta, *leaves.values()],
-                allow_unused=True,
-            )
-            used = [
-                (fields[name], g)
-                for name, g in zip(leaves, cotangents, strict=True)
-                if g is not None
-            ]
-            if used:
-                (through,) = torch.autograd.grad(
-                    [value for value, _ in used],
-                    along,
-                    grad_outputs=[g.movedim(1, 0) for _, g in used],
-                    is_grads_batched=True,
-                )
-                F = F + through.movedim(0, 1)
+            (F,) = torch.autograd.grad(local.diagonal(dim1=-2, dim2=-1).sum(), delta)
         c = local.detach()[:, :, 0]
         # Placeholders where the mode is ruled out (its weight is -inf): finite, harmless.
         eye = torch.eye(D, dtype=x.dtype, device=x.device)
@@ -740,18 +709,6 @@ def _select_slots(problem: ContactProblem, slots: Tensor) -> ContactProblem:
         bn=problem.b_normal.index_select(-1, slots),
         bt=problem.b_tangent.index_select(-2, slots),
     )
-
-
-#: The attribute of each field of :meth:`ContactProblem.unchecked`.
-_FIELDS = {
-    "M": "M", "v": "v", "f": "f", "Jn": "Jn", "Jt": "Jt", "phi": "phi", "mu": "mu",
-    "mask": "slot_mask", "bn": "b_normal", "bt": "b_tangent",
-}  # fmt: skip
-
-
-def _per_mode_copy(t: Tensor, K: int) -> Tensor:
-    """``(P, K, *E)``: a field ``(P, *E)`` repeated for ``K`` modes, contiguous."""
-    return t.unsqueeze(1).expand(t.shape[0], K, *t.shape[1:]).clone()
 
 
 def _per_mode(problem: ContactProblem, K: int) -> ContactProblem:
