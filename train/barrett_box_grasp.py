@@ -45,27 +45,26 @@ import tyro
 from tqdm import tqdm
 
 from torchcontact.experiments import (
+    BOX_METHODS,
     RBPF_METHODS,
     BarrettBoxGrasp,
     BoxEstimatorRuns,
     BoxTrials,
     RunLog,
     box_contact_model,
-    box_tracking_metrics,
     box_tracking_table,
     box_trials,
     check_int,
     check_name,
-    first_tip_step,
     new_run_dir,
     plot_box_errors,
     plot_box_snapshots,
     plot_box_states,
     run_box_estimators,
+    score_box_estimators,
 )
 
-#: The methods, in table order.
-METHODS = ("rbpf", "rbpf_no_projection", "pf", "pf_same_n", "ekf", "camera")
+METHODS = BOX_METHODS
 
 
 @dataclass(frozen=True)
@@ -161,7 +160,7 @@ def run(args: Args) -> dict[str, Any]:
         seed=args.seed,
         done=lambda _: progress.update(),
     )
-    metrics = score(trials, runs)
+    metrics = score_box_estimators(trials, runs)
     writer = log.writer
     for method, row in metrics.items():
         for key, value in row.items():
@@ -192,30 +191,6 @@ def run(args: Args) -> dict[str, Any]:
     progress.update()
     progress.close()
     return {"metrics": metrics, "run_dir": str(run_dir), **summary}
-
-
-def score(trials: BoxTrials, runs: BoxEstimatorRuns) -> dict[str, dict[str, float]]:
-    """:func:`~torchcontact.experiments.box_tracking_metrics` of every method (in
-    :data:`METHODS` order), with its particle count."""
-    metrics = {}
-    for method in (m for m in METHODS if m in runs.outputs):
-        out, timing = runs.outputs[method], runs.timings[method]
-        has_states = "state_probs" in out
-        row = box_tracking_metrics(
-            true_pose=trials.pose,
-            pose=out["pose"],
-            occluded=trials.occluded,
-            true_tip=trials.tip_step,
-            tip=first_tip_step(out["pose"]),
-            true_states=trials.states if has_states else None,
-            state_probs=out["state_probs"] if has_states else None,
-            wall=timing.wall,
-            cpu=timing.cpu,
-        )
-        if method in runs.particles:
-            row["particles"] = float(runs.particles[method])
-        metrics[method] = row
-    return metrics
 
 
 def write_results(

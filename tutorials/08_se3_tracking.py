@@ -64,7 +64,9 @@ torch.set_num_threads(1)
 # start closing (occluded by phase, from a quarter of the steps on).
 
 # %%
-settings = BarrettBoxGrasp(seed=0, trials=2 if FAST else 8, trials_per_box=2, steps=40 if FAST else 80)
+settings = BarrettBoxGrasp(
+    seed=0, trials=2 if FAST else 8, trials_per_box=2, steps=40 if FAST else 80
+)
 trials = box_trials(settings)
 print(f"{trials.batch} trials of {trials.steps} steps (h = 10 ms)")
 print(f"occluded from step {int(trials.occluded.nonzero()[0])} on")
@@ -135,7 +137,8 @@ plt.show()
 # Truth, the camera's last pose and the estimates at three moments of the first trial:
 
 # %%
-fig = plot_box_snapshots(trials, runs.outputs, [trials.steps // 5, trials.steps // 2, trials.steps - 1])
+moments = [trials.steps // 5, trials.steps // 2, trials.steps - 1]
+fig = plot_box_snapshots(trials, runs.outputs, moments)
 fig.savefig(OUT / "08_snapshots.png", dpi=80)
 plt.show()
 

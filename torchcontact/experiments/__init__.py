@@ -66,6 +66,7 @@ from torchcontact.experiments._barrett_box import (
     palm_ik,
 )
 from torchcontact.experiments._barrett_box_estimators import (
+    BOX_METHODS,
     RBPF_METHODS,
     BoxEstimatorRuns,
     box_contact_model,
@@ -77,6 +78,7 @@ from torchcontact.experiments._barrett_box_estimators import (
     run_box_estimators,
     run_box_pf,
     run_box_rbpf,
+    score_box_estimators,
 )
 from torchcontact.experiments._barrett_box_metrics import (
     TIP_TOLERANCE,
@@ -204,6 +206,7 @@ from torchcontact.experiments._triangle_grasp_plots import (
 
 __all__ = [
     "ARGUMENTS",
+    "BOX_METHODS",
     "BOX_PAIRS",
     "CHECKPOINT",
     "FILTER_SEED_OFFSETS",
@@ -321,6 +324,7 @@ __all__ = [
     "run_vision",
     "save_checkpoint",
     "scalar_metrics",
+    "score_box_estimators",
     "seed_statistics",
     "shift_actions",
     "simulate_grasps",

@@ -32,11 +32,13 @@ from torchcontact.experiments._barrett_box import (
     H,
     barrett_box_scene,
     barrett_member,
+    first_tip_step,
     hand_pads,
     pad_triggers,
     pair_slots,
     pair_states,
 )
+from torchcontact.experiments._barrett_box_metrics import box_tracking_metrics
 from torchcontact.experiments._triangle_grasp import Timing, timed
 from torchcontact.filters import (
     RBPF,
@@ -60,6 +62,8 @@ from torchcontact.states import TactileArray
 PF_NOISE_STD = (5e-4, 5e-4, 5e-4, 5e-3, 5e-3, 5e-3, 0.01, 0.01, 0.01, 0.2, 0.2, 0.2)
 #: Per-step process noise std of the RBPF's modes, in the same tangent.
 RBPF_NOISE_STD = (2e-4, 2e-4, 2e-4, 2e-3, 2e-3, 2e-3, 5e-3, 5e-3, 5e-3, 0.05, 0.05, 0.05)
+#: Every method of :func:`run_box_estimators`, in table order.
+BOX_METHODS = ("rbpf", "rbpf_no_projection", "pf", "pf_same_n", "ekf", "camera")
 #: The RBPF methods: with the projection out of contact, and without (the ablation).
 RBPF_METHODS = ("rbpf", "rbpf_no_projection")
 #: The prior's std: position (m), rotation (rad), linear and angular velocity.
@@ -453,3 +457,35 @@ def run_box_estimators(
     outputs["camera"], timings["camera"] = timed(lambda: run_box_camera(trials, prior))
     report("camera")
     return BoxEstimatorRuns(outputs, timings, particles, calibration)
+
+
+def score_box_estimators(trials: BoxTrials, runs: BoxEstimatorRuns) -> dict[str, dict[str, float]]:
+    """:func:`~torchcontact.experiments.box_tracking_metrics` of every method that ran, in
+    :data:`BOX_METHODS` order, with its particle count (``particles``) where it has one.
+
+    Args:
+        trials: the trials the methods tracked.
+        runs: what :func:`run_box_estimators` gave on them.
+
+    Returns:
+        ``{method: {metric: value}}``.
+    """
+    metrics = {}
+    for method in (m for m in BOX_METHODS if m in runs.outputs):
+        out, timing = runs.outputs[method], runs.timings[method]
+        has_states = "state_probs" in out
+        row = box_tracking_metrics(
+            true_pose=trials.pose,
+            pose=out["pose"],
+            occluded=trials.occluded,
+            true_tip=trials.tip_step,
+            tip=first_tip_step(out["pose"]),
+            true_states=trials.states if has_states else None,
+            state_probs=out["state_probs"] if has_states else None,
+            wall=timing.wall,
+            cpu=timing.cpu,
+        )
+        if method in runs.particles:
+            row["particles"] = float(runs.particles[method])
+        metrics[method] = row
+    return metrics
