@@ -122,11 +122,12 @@ metrics = score_box_estimators(trials, runs)
 print(box_tracking_table(metrics))
 
 # %% [markdown]
-# While the box is hidden, the EKF and the held camera pose know nothing of the fingers: the
-# box moves (pushed, tipped, lifted) and they stay where they last saw it. The particle filter
-# simulates the fingers, but its particles spread over boxes that the hand grasps slightly
-# differently, and it can only afford a few of them in the RBPF's time. The position error
-# against time, with the occlusion shaded:
+# How to read it: "occl." is the part of the grasp during which the hand hides the box. A box
+# that the hand grasps cleanly barely moves while hidden, so holding the last estimate (the
+# EKF without contact, the held camera pose) is hard to beat on those trials; the physics pays
+# where a finger pushes the box across the table or tips it over. The contact-state columns
+# exist only for the filters with contact (the EKF and the camera have none). The position
+# error against time, with the occlusion shaded:
 
 # %%
 fig = plot_box_errors(trials, runs.outputs, {m: m for m in runs.outputs})
