@@ -55,8 +55,71 @@ class _ConstantDynamics:
     R: Tensor
 
 
+class ContactModelFields:
+    """What the planar and spatial contact models share: ``K`` from the mode table, the
+    action count, dtype and device of the filter, and the tracked body's name (a mixin of
+    frozen dataclasses with the fields ``scene``, ``modes``, ``Q`` and ``transition``)."""
+
+    scene: Scene
+    modes: Tensor
+    Q: Tensor
+    transition: Tensor
+
+    @property
+    def num_modes(self) -> int:
+        """``K``."""
+        return int(self.modes.shape[0])
+
+    @property
+    def num_actions(self) -> int | None:
+        """``A`` of an action-dependent transition, else None."""
+        return int(self.transition.shape[0]) if self.transition.ndim == 3 else None
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """The filter's dtype (that of ``Q``)."""
+        return self.Q.dtype
+
+    @property
+    def device(self) -> torch.device:
+        """The filter's device."""
+        return self.Q.device
+
+    @property
+    def body(self) -> str:
+        """Name of the tracked body."""
+        return self.scene.bodies[self.scene.dynamic[0]].name
+
+
+def rollout_modes(rollout: object, *, R: object, smoothing: float) -> tuple[Tensor, Tensor, Tensor]:
+    """The mode table, transition and first-mode distribution of simulated rollouts.
+
+    Args:
+        rollout: a :class:`~torchcontact.sim.Rollout` of at least one step, ``mode`` of shape
+            ``(T, *B, S)``.
+        R: the model's measurement noise; its dtype (float64 if it is not a tensor) is that of
+            the estimates.
+        smoothing: pseudo-count of the transition and first-mode estimates, ``> 0``.
+
+    Returns:
+        The ``(K, S)`` table of :func:`collect_modes`, the ``(K, K)`` transition of
+        :func:`empirical_transition` and the ``(K,)`` smoothed frequencies of the first modes.
+
+    Raises:
+        ValueError: naming ``rollout`` if it is not a Rollout of at least one step.
+    """
+    if not isinstance(rollout, Rollout) or rollout.mode.shape[0] == 0:
+        raise ValueError(f"rollout: expected a Rollout of >= 1 step, got {describe(rollout)}")
+    table, ids, _ = collect_modes(rollout.mode)
+    K = len(table)
+    dtype = R.dtype if isinstance(R, Tensor) else torch.float64
+    first = torch.bincount(ids[0].reshape(-1), minlength=K).to(dtype) + smoothing
+    transition = empirical_transition(ids, K, smoothing=smoothing, dtype=dtype)
+    return table, transition, first / first.sum()
+
+
 @dataclass(frozen=True, eq=False, kw_only=True)
-class PlanarContactModel:
+class PlanarContactModel(ContactModelFields):
     r"""One body of a planar scene, its contact modes and a vision sensor, as a switching model
     for the :class:`~torchcontact.filters.RBPF`.
 
@@ -231,26 +294,16 @@ class PlanarContactModel:
             ValueError: naming ``rollout`` if it is not a :class:`~torchcontact.sim.Rollout`
                 of at least one step, or the field at fault.
         """
-        if not isinstance(rollout, Rollout) or rollout.mode.shape[0] == 0:
-            raise ValueError(f"rollout: expected a Rollout of >= 1 step, got {describe(rollout)}")
-        table, ids, _ = collect_modes(rollout.mode)
-        K = len(table)
-        dtype = R.dtype if isinstance(R, Tensor) else torch.float64
-        first = torch.bincount(ids[0].reshape(-1), minlength=K).to(dtype) + smoothing
+        table, transition, initial = rollout_modes(rollout, R=R, smoothing=smoothing)
         return cls(
             scene=scene,
             modes=table,
             Q=Q,
             R=R,
-            transition=empirical_transition(ids, K, smoothing=smoothing, dtype=dtype),
-            initial=first / first.sum(),
+            transition=transition,
+            initial=initial,
             **options,
         )
-
-    @property
-    def num_modes(self) -> int:
-        """``K``."""
-        return int(self.modes.shape[0])
 
     @property
     def state_dim(self) -> int:
@@ -261,26 +314,6 @@ class PlanarContactModel:
     def obs_dim(self) -> int:
         """``3``: the vision pose."""
         return OBS_DIM
-
-    @property
-    def num_actions(self) -> int | None:
-        """``A`` of an action-dependent transition, else None."""
-        return int(self.transition.shape[0]) if self.transition.ndim == 3 else None
-
-    @property
-    def dtype(self) -> torch.dtype:
-        """The filter's dtype (that of ``Q``)."""
-        return self.Q.dtype
-
-    @property
-    def device(self) -> torch.device:
-        """The filter's device."""
-        return self.Q.device
-
-    @property
-    def body(self) -> str:
-        """Name of the tracked body."""
-        return self.scene.bodies[self.scene.dynamic[0]].name
 
     def mode_dynamics(self, belief: RBPFBelief, control: Any) -> ModeDynamics:
         """Every mode's step linearized at the belief's mixture mean.

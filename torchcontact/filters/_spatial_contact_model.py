@@ -19,7 +19,7 @@ from torchcontact.contact import (
     solve_mode,
     solve_mode_unchecked,
 )
-from torchcontact.filters._contact_model import collect_modes, empirical_transition
+from torchcontact.filters._contact_model import ContactModelFields, rollout_modes
 from torchcontact.filters._manifold import SE3, Manifold
 from torchcontact.filters._mode_gate import check_gate, gate_log_weight
 from torchcontact.filters._rbpf_belief import RBPFBelief
@@ -113,7 +113,7 @@ class _Linearization:
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
-class SpatialContactModel:
+class SpatialContactModel(ContactModelFields):
     r"""The one dynamic body of a spatial scene (a box on a table, grasped by a kinematic
     robot), its contact modes, a camera and tactile pads, as a switching model for the
     :class:`~torchcontact.filters.RBPF`, on the SE(3) manifold.
@@ -322,29 +322,19 @@ class SpatialContactModel:
             ValueError: naming ``rollout`` if it is not a :class:`~torchcontact.sim.Rollout`
                 of at least one step, or the field at fault.
         """
-        if not isinstance(rollout, Rollout) or rollout.mode.shape[0] == 0:
-            raise ValueError(f"rollout: expected a Rollout of >= 1 step, got {describe(rollout)}")
-        table, ids, _ = collect_modes(rollout.mode)
-        K = len(table)
-        dtype = R.dtype if isinstance(R, Tensor) else torch.float64
-        first = torch.bincount(ids[0].reshape(-1), minlength=K).to(dtype) + smoothing
+        table, transition, initial = rollout_modes(rollout, R=R, smoothing=smoothing)
         return cls(
             scene=scene,
             modes=table,
             Q=Q,
             R=R,
-            transition=empirical_transition(ids, K, smoothing=smoothing, dtype=dtype),
-            initial=first / first.sum(),
+            transition=transition,
+            initial=initial,
             **options,
         )
 
     # ------------------------------------------------------------------------------------------
     # the SwitchingModel protocol
-
-    @property
-    def num_modes(self) -> int:
-        """``K``."""
-        return int(self.modes.shape[0])
 
     @property
     def state_dim(self) -> int:
@@ -365,26 +355,6 @@ class SpatialContactModel:
     def measurement_manifold(self) -> Manifold:
         """:data:`~torchcontact.filters.SE3`: the camera pose's manifold (6-dim tangent)."""
         return SE3
-
-    @property
-    def num_actions(self) -> int | None:
-        """``A`` of an action-dependent transition, else None."""
-        return int(self.transition.shape[0]) if self.transition.ndim == 3 else None
-
-    @property
-    def dtype(self) -> torch.dtype:
-        """The filter's dtype (that of ``Q``)."""
-        return self.Q.dtype
-
-    @property
-    def device(self) -> torch.device:
-        """The filter's device."""
-        return self.Q.device
-
-    @property
-    def body(self) -> str:
-        """Name of the tracked body."""
-        return self.scene.bodies[self.scene.dynamic[0]].name
 
     def mode_dynamics(self, belief: RBPFBelief, control: RobotControl | None) -> ModeDynamics:
         """Every mode's step linearized at the belief's mixture mean, in tangent coordinates.
