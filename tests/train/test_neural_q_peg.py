@@ -120,12 +120,14 @@ def test_the_network_is_the_tabular_qmdp_head_plus_the_residual(
     torch.testing.assert_close(compact(torch.cat([p @ table, z], -1)), expected)
 
 
+@pytest.mark.parametrize("behaviour", [{"probe_episodes": 1.0}, {"shift_episodes": 1.0}])
 def test_the_occluded_variant_trains_and_skips_the_raw_setting(
-    module: ModuleType, tabular_run: Path, tmp_path: Path
+    module: ModuleType, tabular_run: Path, tmp_path: Path, behaviour: dict[str, float]
 ) -> None:
     """The camera of the variant returns NaN near the hole: the filter runs on touch there,
     and the raw setting (which reads the camera's pose) is left out of the comparison, the
-    two probing ones join it. Probing behaviour and Monte Carlo targets train too."""
+    two probing ones join it. Probing or touch-and-shift behaviour and Monte Carlo targets
+    train too."""
     result = module.run(
         _tiny(
             module,
@@ -133,8 +135,8 @@ def test_the_occluded_variant_trains_and_skips_the_raw_setting(
             tabular_run,
             rounds=1,
             occlusion_radius=0.05,
-            probe_episodes=1.0,
             targets="monte_carlo",
+            **behaviour,
         )
     )
     assert set(result["evaluations"]) == {"oracle", "qmdp", "probe", "shift", "neural"}
@@ -178,6 +180,7 @@ def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
         ({"name": ""}, r"name: expected a non-empty name"),
         ({"probe_episodes": 1.5}, r"probe_episodes: expected a finite number in \[0.0, 1.0\]"),
         ({"press_penalty": -1.0}, r"press_penalty: expected a finite number >= 0"),
+        ({"shift_episodes": 1.5}, r"shift_episodes: expected a finite number in \[0.0, 1.0\]"),
         ({"targets": "mc"}, r"targets: expected one of \('td', 'monte_carlo'\)"),
     ],
 )
