@@ -104,6 +104,8 @@ DTYPE = torch.float32
 #: The targets of ``--targets``.
 _TARGETS = ("td", "monte_carlo")
 #: The checkpoint's entries besides ``"args"``.
+#: Index of the blind-camera flag among the compact features (see ``belief_features``).
+BLIND_FEATURE = NUM_BELIEF_FEATURES - 3
 _SAVED = ("round", "online", "optimizer", "buffer", "counters", "history", "best")
 
 
@@ -176,6 +178,9 @@ class Args:
     actions other than pressing ("-y"), weighs pressing's by this value and the others' by
     --residual-penalty (a large one keeps their order QMDP's: the residual then learns when
     to press, the probing decision); None: every action's by --residual-penalty"""
+    blind_only: bool = False
+    """gate the residual by the blind-camera feature: the network is QMDP wherever the camera
+    sees the peg, and learns only what to do while blind"""
     targets: str = "td"
     """td: double-DQN targets bootstrapped from a frozen copy; monte_carlo: each step's
     discounted shaped return to the end of its episode (fitted Q evaluation of the
@@ -257,6 +262,7 @@ def compact_network(args: Args, num_actions: int) -> QNetwork:
         NUM_BELIEF_FEATURES,
         hidden=(args.hidden, args.hidden),
         residual_on_probabilities=False,
+        gate=BLIND_FEATURE if args.blind_only else None,
     )
     network.table.requires_grad_(False)
     return network
@@ -270,6 +276,7 @@ def deployed_network(table: torch.Tensor, compact: QNetwork) -> QNetwork:
         compact.num_features,
         hidden=[m.out_features for m in compact.residual if isinstance(m, torch.nn.Linear)][:-1],
         residual_on_probabilities=False,
+        gate=compact.gate,
     )
     network.residual.load_state_dict(compact.residual.state_dict())
     return network
