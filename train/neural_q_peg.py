@@ -37,11 +37,12 @@ network's greedy action: move away from a bottom corner that touches alone, pres
 blind and uncertain), the probe that reads a touch as a lateral position; and ``--targets
 monte_carlo`` fits each step's discounted return to the end of its episode instead of the
 bootstrapped target (a Q evaluation of that behaviour; the greedy network is one step of
-policy improvement over it).
-The greedy network is evaluated every few rounds on validation episodes; the best (the
-untrained network, i.e. QMDP, included) is kept. Finally the settings are compared on the
-same fresh episodes (oracle, raw on the standard camera, QMDP, press-then-QMDP and the
-touch-and-shift probe on the occluded variant, neural). Writes TensorBoard logs, checkpoints,
+policy improvement over it). ``--blind-only`` multiplies the residual by the blind-camera
+feature (the network is QMDP wherever the camera sees). The greedy network is evaluated every
+few rounds on validation episodes; the best (the untrained network, i.e. QMDP, included) is
+kept. Finally the settings are compared on the same fresh episodes (oracle, raw on the
+standard camera, QMDP, press-then-QMDP and the touch-and-shift probe on the occluded variant,
+neural). Writes TensorBoard logs, checkpoints,
 ``network.pt`` and ``results.md`` to a new run folder, ``runs/neural_q_peg__<seed>__<unix
 time>``; a killed run continues where its last checkpoint left it, to the same result, with
 ``--resume <that folder>`` (the same arguments; ``--rounds`` may grow).
