@@ -4,6 +4,8 @@
     python train/neural_q_peg.py --tabular-run runs/dyna_q_peg__0__<unix time> --rounds 8
     python train/neural_q_peg.py --tabular-run <that run> --occlusion-radius 0.05 \
         --probe-episodes 0.5 --targets monte_carlo --residual-penalty 0.1
+    python train/neural_q_peg.py --tabular-run <that run> --occlusion-radius 0.05 \
+        --shift-episodes 0.75 --targets monte_carlo --residual-penalty 0.1
 
 Starts from a finished ``dyna_q_peg`` run (``--tabular-run``, its run folder): its Q table,
 manipulation graph and fitted belief model. ``--occlusion-radius`` (and ``--vision-sigma``) run
@@ -13,7 +15,8 @@ so the tabular Q and the belief model's dynamics, are the same.
 
 The network (:class:`~torchcontact.rl.QNetwork`) is QMDP plus a residual on the compact belief
 features (the tail of :func:`~torchcontact.experiments.belief_features`: pose mean and spread,
-class entropy, ESS, class marginals): ``Q(b, a) = Σ_i p_i Q_tab(m_i, a) + g(z, a)``. The QMDP
+class entropy, ESS, class marginals, and the latest touch: blind camera, which bottom half
+touches): ``Q(b, a) = Σ_i p_i Q_tab(m_i, a) + g(z, a)``. The QMDP
 head is frozen; ``g`` starts at zero, so before any update the network acts exactly as QMDP.
 Each round plays ``--num-envs`` episodes with the filter in the loop, ε-greedy on the network
 (ε decays linearly over the transitions), storing belief transitions (features, action, shaped
@@ -28,13 +31,18 @@ probabilities over all states: with a frozen head they are all the network needs
 camera is blind, QMDP never acts to find out where the peg is: ``--probe-episodes`` lets a
 fraction of the training episodes probe first (press the peg down while blind and laterally
 uncertain until a bottom sensor fires, :func:`~torchcontact.experiments.probe_presses`), so
-the data hold what probing leads to, and ``--targets monte_carlo`` fits each step's
-discounted return to the end of its episode instead of the bootstrapped target (a Q
-evaluation of that behaviour; the greedy network is one step of policy improvement over it).
-The greedy network is evaluated every few rounds on validation episodes; the best (the
-untrained network, i.e. QMDP, included) is kept. Finally the settings are compared on the
-same fresh episodes (oracle, raw on the standard camera, QMDP, press-then-QMDP and the
-touch-and-shift probe on the occluded variant, neural). Writes TensorBoard logs, checkpoints,
+the data hold what probing leads to; ``--shift-episodes`` lets a fraction follow the
+touch-and-shift probe instead (:func:`~torchcontact.experiments.shift_actions` on the
+network's greedy action: move away from a bottom corner that touches alone, press while
+blind and uncertain), the probe that reads a touch as a lateral position; and ``--targets
+monte_carlo`` fits each step's discounted return to the end of its episode instead of the
+bootstrapped target (a Q evaluation of that behaviour; the greedy network is one step of
+policy improvement over it). ``--blind-only`` multiplies the residual by the blind-camera
+feature (the network is QMDP wherever the camera sees). The greedy network is evaluated every
+few rounds on validation episodes; the best (the untrained network, i.e. QMDP, included) is
+kept. Finally the settings are compared on the same fresh episodes (oracle, raw on the
+standard camera, QMDP, press-then-QMDP and the touch-and-shift probe on the occluded variant,
+neural). Writes TensorBoard logs, checkpoints,
 ``network.pt`` and ``results.md`` to a new run folder, ``runs/neural_q_peg__<seed>__<unix
 time>``; a killed run continues where its last checkpoint left it, to the same result, with
 ``--resume <that folder>`` (the same arguments; ``--rounds`` may grow).
@@ -67,6 +75,7 @@ from torchcontact.experiments import (
     RunLog,
     Setting,
     belief_features,
+    bottom_sides,
     bottom_touch,
     check_choice,
     check_int,
@@ -81,6 +90,7 @@ from torchcontact.experiments import (
     results_table,
     round_seed,
     save_checkpoint,
+    shift_actions,
 )
 from torchcontact.rl import (
     DynaQ,
@@ -95,6 +105,8 @@ DTYPE = torch.float32
 #: The targets of ``--targets``.
 _TARGETS = ("td", "monte_carlo")
 #: The checkpoint's entries besides ``"args"``.
+#: Index of the blind-camera flag among the compact features (see ``belief_features``).
+BLIND_FEATURE = NUM_BELIEF_FEATURES - 3
 _SAVED = ("round", "online", "optimizer", "buffer", "counters", "history", "best")
 
 
@@ -156,6 +168,9 @@ class Args:
     """fraction of the training episodes whose behaviour probes: presses the peg down while
     the camera is blind and the belief's lateral spread exceeds --probe-threshold, until a
     bottom sensor fires (the scripted probe-then-insert policy on the network)"""
+    shift_episodes: float = 0.0
+    """fraction of the training episodes (drawn after --probe-episodes, among the others)
+    whose behaviour is the touch-and-shift probe on the network's greedy action"""
     probe_threshold: float = PROBE_THRESHOLD
     """lateral spread of the belief above which probing presses, m (also the probe and shift
     settings of the final comparison)"""
@@ -164,6 +179,9 @@ class Args:
     actions other than pressing ("-y"), weighs pressing's by this value and the others' by
     --residual-penalty (a large one keeps their order QMDP's: the residual then learns when
     to press, the probing decision); None: every action's by --residual-penalty"""
+    blind_only: bool = False
+    """gate the residual by the blind-camera feature: the network is QMDP wherever the camera
+    sees the peg, and learns only what to do while blind"""
     targets: str = "td"
     """td: double-DQN targets bootstrapped from a frozen copy; monte_carlo: each step's
     discounted shaped return to the end of its episode (fitted Q evaluation of the
@@ -225,6 +243,7 @@ def check_args(args: Args) -> _Tabular:
     check_real("epsilon_start", args.epsilon_start, low=0.0, high=1.0)
     check_real("epsilon_end", args.epsilon_end, low=0.0, high=1.0)
     check_real("probe_episodes", args.probe_episodes, low=0.0, high=1.0)
+    check_real("shift_episodes", args.shift_episodes, low=0.0, high=1.0)
     check_real("probe_threshold", args.probe_threshold, low=0.0)
     if args.press_penalty is not None:
         check_real("press_penalty", args.press_penalty, low=0.0)
@@ -244,6 +263,7 @@ def compact_network(args: Args, num_actions: int) -> QNetwork:
         NUM_BELIEF_FEATURES,
         hidden=(args.hidden, args.hidden),
         residual_on_probabilities=False,
+        gate=BLIND_FEATURE if args.blind_only else None,
     )
     network.table.requires_grad_(False)
     return network
@@ -257,6 +277,7 @@ def deployed_network(table: torch.Tensor, compact: QNetwork) -> QNetwork:
         compact.num_features,
         hidden=[m.out_features for m in compact.residual if isinstance(m, torch.nn.Linear)][:-1],
         residual_on_probabilities=False,
+        gate=compact.gate,
     )
     network.residual.load_state_dict(compact.residual.state_dict())
     return network
@@ -413,9 +434,11 @@ def _validate(
     return {"success": result.success_rate, "round": round_index, "state": state}
 
 
-def _inputs(filt: PegInHoleFilter, belief: Any, lookup: QLookup) -> torch.Tensor:
+def _inputs(
+    filt: PegInHoleFilter, belief: Any, lookup: QLookup, observation: dict[str, Any]
+) -> torch.Tensor:
     """``(B, A + F)`` the compact network's input: QMDP values, then the compact features."""
-    features = belief_features(filt, belief, lookup)
+    features = belief_features(filt, belief, lookup, observation)
     M = lookup.table.shape[0]
     qmdp = features[:, :M] @ lookup.table
     return torch.cat([qmdp, features[:, M:]], -1).to(DTYPE)
@@ -449,13 +472,15 @@ def _collect(
     generator = torch.Generator().manual_seed(seed)
     observation, info = env.reset(seed=seed)
     belief = filt.init(observation)
-    inputs = _inputs(filt, belief, lookup)
+    inputs = _inputs(filt, belief, lookup, observation)
     potential = shaping.potential(env.states, info["peg_pose"], depth)
     B = env.num_envs
     live = np.ones(B, dtype=bool)
     returns, lengths = np.zeros(B), np.zeros(B, dtype=np.int64)
     successes = np.zeros(B, dtype=bool)
-    probing = torch.rand(B, generator=generator) < args.probe_episodes
+    draw = torch.rand(B, generator=generator)
+    probing = draw < args.probe_episodes
+    shifting = ~probing & (draw < args.probe_episodes + args.shift_episodes)
     touched = torch.zeros(B, dtype=torch.bool)
     steps: list[dict[str, torch.Tensor]] = []
     epsilon = schedule(counters["transitions"])
@@ -467,17 +492,21 @@ def _collect(
         greedy = (values + noise).argmax(-1)
         random = torch.randint(filt.model.num_actions, (B,), generator=generator)
         explore = torch.rand(B, generator=generator) < epsilon
+        blind = torch.as_tensor(np.isnan(observation["peg_pose"]).all(-1))
+        spread = lateral_spread(filt, belief)
         press = probing & probe_presses(
-            blind=torch.as_tensor(np.isnan(observation["peg_pose"]).all(-1)),
-            spread=lateral_spread(filt, belief),
-            touched=touched,
-            threshold=args.probe_threshold,
+            blind=blind, spread=spread, touched=touched, threshold=args.probe_threshold
         )
-        actions = torch.where(press, PRESS, torch.where(explore, random, greedy)).numpy()
+        sides = bottom_sides(filt.model.task, torch.as_tensor(observation["tactile"]).bool())
+        shift = shift_actions(
+            greedy, blind=blind, spread=spread, sides=sides, threshold=args.probe_threshold
+        )
+        behaviour = torch.where(shifting, shift, greedy)
+        actions = torch.where(press, PRESS, torch.where(explore, random, behaviour)).numpy()
         observation, reward, terminated, truncated, info = env.step(actions)
         touched |= press & bottom_touch(filt.model.task, torch.as_tensor(observation["tactile"]))
         belief = filt.step(belief, actions, observation, generator=generator)
-        next_inputs = _inputs(filt, belief, lookup)
+        next_inputs = _inputs(filt, belief, lookup, observation)
         next_potential = shaping.potential(env.states, info["peg_pose"], depth)
         shaped = shaping.shaped(
             reward,

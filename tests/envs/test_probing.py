@@ -22,8 +22,10 @@ from torchcontact.envs import (
     PegTransitions,
 )
 from torchcontact.experiments import (
+    NUM_BELIEF_FEATURES,
     PotentialShaping,
     QLookup,
+    belief_features,
     bottom_sides,
     bottom_touch,
     evaluate,
@@ -254,3 +256,37 @@ def test_the_shift_probe_moves_away_from_the_corner_that_lands(
     assert steps[touch][1][right].any()
     assert not steps[touch][1][bottom & ~right].any()
     assert names[touch + 1] == "-x"  # away from the right corner
+
+
+def test_belief_features_end_with_the_latest_touch(
+    fitted: tuple[PegInHoleBeliefModel, DynaQ],
+) -> None:
+    """The last three features: the camera blind (its pose all NaN), the left and the right
+    half of the bottom touching, read off the sensors' positions (``y = −h/2``, sign of
+    ``x``) for a reading that fires one sensor at a time."""
+    model, agent = fitted
+    positions = model.task.sensors.positions
+    S = positions.shape[0]
+    env = PegInHole2DVector(num_envs=S, config=BLIND, observation="noisy")
+    observation, _ = env.reset(seed=3)
+    filt = PegInHoleFilter(model, num_particles=24)
+    belief = filt.init(observation)
+    pose = np.array(observation["peg_pose"], dtype=np.float64)
+    pose[::2] = np.nan  # every other row blind (BLIND starts blind: the others see a pose)
+    pose[1::2] = 0.0
+    touch = {"peg_pose": pose, "tactile": np.eye(S, dtype=np.float32)}
+    lookup = QLookup(agent, model.task.states)
+    features = belief_features(filt, belief, lookup, touch)
+    assert features.shape == (S, lookup.table.shape[0] + NUM_BELIEF_FEATURES)
+    bottom = torch.isclose(positions[:, 1], torch.tensor(-BLIND.peg_height / 2).double())
+    expected = torch.stack(
+        [
+            torch.arange(S) % 2 == 0,
+            bottom & (positions[:, 0] < 0),
+            bottom & (positions[:, 0] > 0),
+        ],
+        -1,
+    )
+    assert bottom.any()
+    assert ((features[:, -3:] == 1) == expected).all()  # 0 or 1 exactly
+    assert ((features[:, -3:] == 0) == ~expected).all()

@@ -81,6 +81,31 @@ def test_a_residual_on_the_other_features_alone() -> None:
         QNetwork(K, F, A, residual_on_probabilities=1)  # type: ignore[arg-type]
 
 
+def test_a_gated_residual_is_the_mlp_times_its_gate_feature() -> None:
+    """``gate=j``: the residual is feature ``z_j`` times the MLP, computed here layer by layer:
+    zero (QMDP exactly) where ``z_j = 0``, the plain MLP where ``z_j = 1``."""
+    generator = torch.Generator().manual_seed(2)
+    K, F, A = 5, 4, 3
+    table = torch.randn(K, A, generator=generator, dtype=torch.float64)
+    network = QNetwork.from_table(table, F, hidden=(6,), residual_on_probabilities=False, gate=3)
+    first, last = network.residual[0], network.residual[2]
+    with torch.no_grad():  # move the output layer off zero
+        last.weight.copy_(torch.randn(A, 6, generator=generator, dtype=torch.float64))
+        last.bias.copy_(torch.randn(A, generator=generator, dtype=torch.float64))
+    p = torch.softmax(torch.randn(3, K, generator=generator, dtype=torch.float64), -1)
+    other = torch.randn(3, F, generator=generator, dtype=torch.float64)
+    other[:, 3] = torch.tensor([0.0, 1.0, 0.5], dtype=torch.float64)
+    hidden = torch.clamp(other @ first.weight.T + first.bias, min=0.0)
+    mlp = hidden @ last.weight.T + last.bias
+    expected = qmdp_values(table, p) + other[:, 3:] * mlp
+    values = network(torch.cat([p, other], -1))
+    torch.testing.assert_close(values, expected, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(values[0], qmdp_values(table, p[0]), rtol=1e-12, atol=1e-12)
+    for gate in (-1, F):
+        with pytest.raises(ValueError, match="gate"):
+            QNetwork(K, F, A, gate=gate)
+
+
 def _chain_q_star(K: int, gamma: float) -> np.ndarray:
     """Value iteration on the chain: states 0 … K−1, K−1 terminal, actions left / right,
     reward 1 on entering K−1."""

@@ -120,12 +120,38 @@ def test_the_network_is_the_tabular_qmdp_head_plus_the_residual(
     torch.testing.assert_close(compact(torch.cat([p @ table, z], -1)), expected)
 
 
-def test_the_occluded_variant_trains_and_skips_the_raw_setting(
+def test_blind_only_keeps_qmdp_wherever_the_camera_sees(
     module: ModuleType, tabular_run: Path, tmp_path: Path
+) -> None:
+    """``--blind-only``: the residual of the compact and of the deployed network is zero on
+    features whose blind flag (third from the end) is 0, whatever the weights."""
+    args = _tiny(module, tmp_path, tabular_run, blind_only=True)
+    compact = module.compact_network(args, 7)
+    generator = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        for parameter in compact.residual.parameters():
+            parameter.copy_(torch.randn(parameter.shape, generator=generator))
+    z = torch.randn(4, NUM_BELIEF_FEATURES, generator=generator)
+    z[:, -3] = torch.tensor([0.0, 1.0, 0.0, 1.0])
+    inputs = torch.cat([torch.randn(4, 7, generator=generator), z], -1)
+    residual = compact.residual_values(inputs)
+    assert (residual[::2] == 0).all()  # 0 times a finite value: exactly 0
+    assert (residual[1::2].abs() > 0).any()
+    table = torch.randn(3, 7, generator=generator)
+    deployed = module.deployed_network(table, compact)
+    p = torch.softmax(torch.randn(4, 3, generator=generator), -1)
+    expected = p @ table + residual
+    torch.testing.assert_close(deployed(torch.cat([p, z], -1)), expected, rtol=1e-5, atol=1e-5)
+
+
+@pytest.mark.parametrize("behaviour", [{"probe_episodes": 1.0}, {"shift_episodes": 1.0}])
+def test_the_occluded_variant_trains_and_skips_the_raw_setting(
+    module: ModuleType, tabular_run: Path, tmp_path: Path, behaviour: dict[str, float]
 ) -> None:
     """The camera of the variant returns NaN near the hole: the filter runs on touch there,
     and the raw setting (which reads the camera's pose) is left out of the comparison, the
-    two probing ones join it. Probing behaviour and Monte Carlo targets train too."""
+    two probing ones join it. Probing or touch-and-shift behaviour and Monte Carlo targets
+    train too."""
     result = module.run(
         _tiny(
             module,
@@ -133,8 +159,8 @@ def test_the_occluded_variant_trains_and_skips_the_raw_setting(
             tabular_run,
             rounds=1,
             occlusion_radius=0.05,
-            probe_episodes=1.0,
             targets="monte_carlo",
+            **behaviour,
         )
     )
     assert set(result["evaluations"]) == {"oracle", "qmdp", "probe", "shift", "neural"}
@@ -178,6 +204,7 @@ def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
         ({"name": ""}, r"name: expected a non-empty name"),
         ({"probe_episodes": 1.5}, r"probe_episodes: expected a finite number in \[0.0, 1.0\]"),
         ({"press_penalty": -1.0}, r"press_penalty: expected a finite number >= 0"),
+        ({"shift_episodes": 1.5}, r"shift_episodes: expected a finite number in \[0.0, 1.0\]"),
         ({"targets": "mc"}, r"targets: expected one of \('td', 'monte_carlo'\)"),
     ],
 )

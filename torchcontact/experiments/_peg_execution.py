@@ -21,6 +21,7 @@ from torchcontact.envs import (
     PegInHoleBeliefModel,
     PegInHoleConfig,
     PegInHoleFilter,
+    PegInHoleTask,
 )
 from torchcontact.experiments._peg_probing import (
     PRESS,
@@ -38,16 +39,29 @@ from torchcontact.rl import QNetwork, greedy_action, qmdp_action
 Setting = Literal["oracle", "raw", "qmdp", "probe", "shift", "neural"]
 SETTINGS: tuple[str, ...] = get_args(Setting)
 #: Belief features after the state probabilities (see :func:`belief_features`).
-NUM_BELIEF_FEATURES = 8 + NUM_CONTACT_CLASSES
+NUM_BELIEF_FEATURES = 11 + NUM_CONTACT_CLASSES
 
 
-def belief_features(filt: PegInHoleFilter, belief: PegBelief, lookup: QLookup) -> Tensor:
+def belief_features(
+    filt: PegInHoleFilter, belief: PegBelief, lookup: QLookup, observation: Mapping[str, Any]
+) -> Tensor:
     """The input of the neural Q function: ``(B, M + F)``, probabilities first.
 
     Features after the ``M`` state probabilities (:meth:`QLookup.probabilities`): the weighted
     mean of the peg's bottom centre relative to the hole and its angle (cm, cm, rad × 10),
     the log standard deviation of the pose (3), the entropy of the contact-class marginal,
-    the effective sample size over ``N``, and the ``K = 24`` class marginals.
+    the effective sample size over ``N``, the ``K = 24`` class marginals, then the latest
+    observation's touch (part of the observation history the belief conditions on, which the
+    fitted belief model reads only as a contact class): whether the camera is blind (its pose
+    all NaN) and whether the left and the right half of the peg's bottom touch
+    (:func:`~torchcontact.experiments.bottom_sides`), each 0 or 1.
+
+    Args:
+        filt: the filter.
+        belief: its belief, batch ``(B,)``.
+        lookup: the tabular Q values' state map.
+        observation: the latest noisy observation, ``"peg_pose" (B, 3)`` and ``"tactile"
+            (B, S)``.
     """
     rbpf = belief.rbpf
     ids, weights = filt.particle_states(belief)
@@ -69,9 +83,25 @@ def belief_features(filt: PegInHoleFilter, belief: PegBelief, lookup: QLookup) -
             entropy,
             ess,
             marginal,
+            _touch_features(filt.model.task, observation).to(mean.dtype),
         ],
         dim=-1,
     )
+
+
+def _touch_features(task: PegInHoleTask, observation: Mapping[str, Any]) -> Tensor:
+    """``(B, 3)`` the touch part of :func:`belief_features`: blind camera, left and right half
+    of the peg's bottom touching (float64, each 0 or 1).
+
+    Args:
+        task: the task (its sensors).
+        observation: a noisy observation, ``"peg_pose" (B, 3)`` (NaN where the camera is blind)
+            and ``"tactile" (B, S)``.
+    """
+    pose = torch.as_tensor(np.asarray(observation["peg_pose"]))
+    blind = torch.isnan(pose).all(-1, keepdim=True)
+    sides = bottom_sides(task, torch.as_tensor(np.asarray(observation["tactile"])).bool())
+    return torch.cat([blind, sides], -1).to(torch.float64)
 
 
 def qmdp_actions(
@@ -260,8 +290,10 @@ def evaluate(
             assert filt is not None
             assert network is not None
             with torch.no_grad():
-                features = belief_features(filt, belief, lookup).to(network.table.dtype)
-                choice = greedy_action(network(features), generator=generator)
+                features = belief_features(filt, belief, lookup, observation)
+                choice = greedy_action(
+                    network(features.to(network.table.dtype)), generator=generator
+                )
         actions = choice.numpy()
         seconds += time.perf_counter() - start
         next_observation, _, terminated, truncated, info = env.step(actions)

@@ -26,7 +26,9 @@ class QNetwork(nn.Module):
       compact summary of the belief generalizes from fewer samples), whose last layer starts
       at zero, so a fresh network equals its QMDP head and learning only adds what the
       belief's other features explain. :meth:`residual_values` returns ``g(x)`` alone, e.g.
-      for a trust-region penalty that keeps the network near QMDP.
+      for a trust-region penalty that keeps the network near QMDP. With ``gate`` the
+      residual is multiplied by one of the other features, ``g(x) = z_gate · MLP(x)``: a 0/1
+      feature (e.g. a blind camera) confines the learned correction to where it is 1.
 
     Args:
         num_states: ``K >= 1``, the length of the probability part of the input.
@@ -36,6 +38,8 @@ class QNetwork(nn.Module):
         activation: factory of the hidden activation module.
         residual_on_probabilities: whether the residual reads the probabilities too (else
             only the ``F >= 1`` other features).
+        gate: index in ``[0, F)`` of the other feature that multiplies the residual; None
+            for none.
         dtype: parameter dtype (default: torch's default dtype).
         device: parameter device.
 
@@ -52,6 +56,7 @@ class QNetwork(nn.Module):
         *,
         activation: Callable[[], nn.Module] = nn.ReLU,
         residual_on_probabilities: bool = True,
+        gate: int | None = None,
         dtype: torch.dtype | None = None,
         device: torch.device | str | None = None,
     ) -> None:
@@ -66,6 +71,9 @@ class QNetwork(nn.Module):
         if not residual_on_probabilities and self.num_features == 0:
             raise ValueError("num_features must be >= 1 when the residual skips the probabilities")
         self.residual_on_probabilities = residual_on_probabilities
+        if gate is not None:
+            check_int("gate", gate, low=0, high=self.num_features)
+        self.gate = gate
         if isinstance(hidden, (str, bytes)) or not isinstance(hidden, Sequence):
             raise ValueError(f"hidden must be a sequence of ints, got {hidden!r}")
         widths = [check_int("hidden", width, low=1) for width in hidden]
@@ -92,6 +100,7 @@ class QNetwork(nn.Module):
         *,
         activation: Callable[[], nn.Module] = nn.ReLU,
         residual_on_probabilities: bool = True,
+        gate: int | None = None,
     ) -> QNetwork:
         """A network whose QMDP head is ``q_table``: at creation it returns exactly
         :func:`qmdp_values` ``(q_table, p)``.
@@ -103,6 +112,7 @@ class QNetwork(nn.Module):
             hidden: widths of the residual's hidden layers.
             activation: factory of the hidden activation module.
             residual_on_probabilities: whether the residual reads the probabilities too.
+            gate: index of the other feature that multiplies the residual; None for none.
 
         Raises:
             ValueError: ``q_table`` is not a finite ``(K, A)`` floating tensor.
@@ -121,6 +131,7 @@ class QNetwork(nn.Module):
             hidden,
             activation=activation,
             residual_on_probabilities=residual_on_probabilities,
+            gate=gate,
             dtype=q_table.dtype,
             device=q_table.device,
         )
@@ -162,9 +173,10 @@ class QNetwork(nn.Module):
         """
         if check:
             features = self._check("features", features, self.input_size)
-        if not self.residual_on_probabilities:
-            features = features[..., self.num_states :]
-        values: Tensor = self.residual(features)
+        inputs = features if self.residual_on_probabilities else features[..., self.num_states :]
+        values: Tensor = self.residual(inputs)
+        if self.gate is not None:
+            values = features[..., self.num_states + self.gate, None] * values
         return values
 
     def qmdp(self, probabilities: Tensor, *, check: bool = True) -> Tensor:
