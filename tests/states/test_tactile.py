@@ -281,3 +281,19 @@ def test_draw_writes_a_png(tmp_path) -> None:
     plt.close(fig)
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert len(ax.patches) == 20  # a pad and a cone per sensor
+
+
+def test_per_entry_log_likelihood_is_the_product_of_the_sensor_probabilities() -> None:
+    array = _rectangle(false_positive=FP, false_negative=FN)
+    gen = torch.Generator().manual_seed(3)
+    triggers = torch.rand(4, 5, 10, generator=gen, dtype=torch.float64) < 0.4  # one per entry
+    readings = torch.rand(4, 1, 10, generator=gen, dtype=torch.float64) < 0.5  # broadcast
+    # written out sensor by sensor: P(r = 1 | t) = 1 - FN if t else FP
+    expected = torch.zeros(4, 5, dtype=torch.float64)
+    for b, n, s in itertools.product(range(4), range(5), range(10)):
+        on = (1 - FN) if bool(triggers[b, n, s]) else FP
+        expected[b, n] += math.log(on if bool(readings[b, 0, s]) else 1 - on)
+    got = array.reading_log_likelihood(readings, triggers.double())
+    torch.testing.assert_close(got, expected, rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="readings"):
+        array.reading_log_likelihood(readings.double(), triggers)

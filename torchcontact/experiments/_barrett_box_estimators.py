@@ -122,11 +122,12 @@ def _tactile_term(
             mode=result.mode,
             active=result.geometry.active,
         )
-        on = torch.cat(
-            [pad.reading_probability(triggers[..., i : i + 1]) for i, pad in enumerate(arrays)],
-            -1,
-        )
-        return torch.where(readings[:, None], torch.log(on), torch.log1p(-on)).sum(-1)
+        read = readings[:, None]
+        terms = [
+            pad.reading_log_likelihood(read[..., i : i + 1], triggers[..., i : i + 1])
+            for i, pad in enumerate(arrays)
+        ]
+        return torch.stack(terms).sum(0)
 
     return log_likelihood
 

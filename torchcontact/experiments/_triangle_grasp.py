@@ -425,8 +425,7 @@ def _tactile_term(
             mode=result.mode,
             active=result.geometry.active,
         )
-        on = tactile.reading_probability(tactile.triggered(contacts))
-        return torch.where(readings[:, None], torch.log(on), torch.log1p(-on)).sum(-1)
+        return tactile.reading_log_likelihood(readings[:, None], tactile.triggered(contacts))
 
     return log_likelihood
 

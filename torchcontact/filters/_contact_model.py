@@ -519,8 +519,8 @@ class PlanarContactModel(ContactModelFields):
             mode=acting.expand(*expand, -1),
             active=active,
         )
-        on = tactile.reading_probability(tactile.triggered(contacts))  # (*B, U, S_s)
-        log_lik = torch.where(readings.unsqueeze(-2), torch.log(on), torch.log1p(-on)).sum(-1)
+        triggers = tactile.triggered(contacts)  # (*B, U, S_s)
+        log_lik = tactile.reading_log_likelihood(readings.unsqueeze(-2), triggers)
         return log_lik.index_select(-1, which).to(self.dtype)
 
     # ------------------------------------------------------------------------------------------

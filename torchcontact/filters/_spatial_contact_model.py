@@ -602,11 +602,10 @@ class SpatialContactModel(ContactModelFields):
                 partner_kind=[PartnerKind.ENVIRONMENT],
                 mask=geometry.active[:, slots].unsqueeze(1).expand(P, U, L),
             )
-            on = pads.reading_probability(pads.triggered(contacts))  # (P, U, S_l)
+            triggers = pads.triggered(contacts)  # (P, U, S_l)
             read = flat_readings[:, start : start + pads.num_sensors].unsqueeze(1)
             start += pads.num_sensors
-            per_pad = torch.where(read, torch.log(on), torch.log1p(-on))
-            log_lik = log_lik + per_pad.sum(-1).to(log_lik.dtype)
+            log_lik = log_lik + pads.reading_log_likelihood(read, triggers).to(log_lik.dtype)
         return log_lik.index_select(-1, which).reshape(*batch, self.num_modes).to(self.dtype)
 
     # ------------------------------------------------------------------------------------------

@@ -264,10 +264,30 @@ class TactileArray:
         if not isinstance(triggers, Tensor) or triggers.ndim != 2:
             shape = tuple(triggers.shape) if isinstance(triggers, Tensor) else triggers
             raise ValueError(f"triggers must have shape (N, {S}), got {shape}")
-        on = self.reading_probability(triggers)  # (N, S)
-        log_on, log_off = torch.log(on), torch.log1p(-on)
-        per_sensor = torch.where(readings.unsqueeze(-2), log_on, log_off)  # (*B, N, S)
-        return per_sensor.sum(-1)
+        return self.reading_log_likelihood(readings.unsqueeze(-2), triggers)  # (*B, N)
+
+    def reading_log_likelihood(self, readings: Tensor, triggers: Tensor) -> Tensor:
+        """Log-likelihood of readings given triggers, both broadcast (one state per entry).
+
+        ``Σ_s [r_s log P(r_s = 1 | t_s) + (1 − r_s) log P(r_s = 0 | t_s)]`` with
+        :meth:`reading_probability` per sensor: the noise model that :meth:`log_likelihood`
+        applies to a table of states, for triggers that differ per batch entry (e.g. the
+        simulated contacts of each particle).
+
+        Args:
+            readings: ``(..., S)`` bool readings.
+            triggers: ``(..., S)`` bool noise-free readings or trigger probabilities,
+                broadcastable with ``readings``.
+
+        Returns:
+            The broadcast batch shape, log-likelihoods in the triggers' dtype.
+
+        Raises:
+            ValueError: ``readings`` is not bool.
+        """
+        check_dtype("readings", readings, torch.bool, "(..., S)")
+        on = self.reading_probability(triggers)
+        return torch.where(readings, torch.log(on), torch.log1p(-on)).sum(-1)
 
     def draw(
         self,
