@@ -35,6 +35,11 @@ def gate_log_weight(
     """Per-mode log-weights of a step: ``0`` for a consistent mode, ``-penalty`` for an
     inconsistent one, ``-inf`` for one whose equalities could not be solved.
 
+    With ``penalty = inf`` a batch entry none of whose modes is consistent keeps its solved
+    modes at ``0`` (the measurements and the transition decide among them) instead of
+    ruling out every mode: the mean the modes are checked at is an estimate, and an entry
+    with no mode left would have no step at all.
+
     Args:
         consistent: ``(*B, K)`` bool, the consistency check's verdict.
         penalty: ``inconsistency_penalty`` (nats; ``inf`` rules inconsistent modes out).
@@ -46,6 +51,8 @@ def gate_log_weight(
     """
     weight = torch.full(consistent.shape, -penalty, dtype=dtype, device=consistent.device)
     weight = weight.masked_fill(consistent, 0.0)
-    if converged is not None:
-        weight = weight.masked_fill(~converged, -math.inf)
-    return weight
+    solved = torch.ones_like(consistent) if converged is None else converged
+    if math.isinf(penalty):
+        stranded = ~(consistent & solved).any(-1, keepdim=True)
+        weight = weight.masked_fill(stranded & solved, 0.0)
+    return weight.masked_fill(~solved, -math.inf)
