@@ -718,13 +718,20 @@ def test_resolved_slots_reproduce_the_simulators_step() -> None:
 
 def test_no_consistent_mode_leaves_the_solved_ones_to_the_evidence() -> None:
     """With the inconsistent modes ruled out (penalty inf), an entry with no consistent mode
-    keeps its solved modes at log-weight 0; unsolved ones stay -inf, and an entry with a
-    consistent mode is gated as usual."""
+    keeps its solved modes (those nearly consistent, if any are) at log-weight 0; unsolved
+    ones stay -inf, and an entry with a consistent mode is gated as usual."""
     consistent = torch.tensor([[False, False, False], [True, False, False]])
     converged = torch.tensor([[True, False, True], [True, True, False]])
     weight = gate_log_weight(consistent, penalty=math.inf, dtype=DT, converged=converged)
     inf = math.inf
     expected = torch.tensor([[0.0, -inf, 0.0], [0.0, -inf, -inf]], dtype=DT)
+    assert (weight == expected).all()  # 0 and ±inf are exact
+    # with a looser verdict, only the stranded entry's nearly consistent solved modes stay
+    nearly = torch.tensor([[False, True, True], [False, False, False]])
+    weight = gate_log_weight(
+        consistent, penalty=math.inf, dtype=DT, converged=converged, nearly=nearly
+    )
+    expected = torch.tensor([[-inf, -inf, 0.0], [0.0, -inf, -inf]], dtype=DT)
     assert (weight == expected).all()  # 0 and ±inf are exact
     finite = gate_log_weight(consistent, penalty=5.0, dtype=DT, converged=converged)
     assert (finite == torch.tensor([[-5.0, -inf, -5.0], [0.0, -5.0, -inf]], dtype=DT)).all()

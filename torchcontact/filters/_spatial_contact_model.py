@@ -109,6 +109,7 @@ class _Linearization:
         c: ``(P, K, 12)`` ``local(chart, f_k(x̄))`` (zero with the per-mode charts).
         converged: ``(P, K)`` bool, the mode's equalities were solved at ``x̄``.
         consistent: ``(P, K)`` bool, the gate's verdict (True where it is off).
+        nearly: ``(P, K)`` bool, the verdict with ten times the tolerance.
     """
 
     F: Tensor
@@ -116,6 +117,7 @@ class _Linearization:
     c: Tensor
     converged: Tensor
     consistent: Tensor
+    nearly: Tensor
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
@@ -427,6 +429,7 @@ class SpatialContactModel(ContactModelFields):
             penalty=self.inconsistency_penalty,
             dtype=dtype,
             converged=lin.converged,
+            nearly=lin.nearly,
         )
         noise = self._noise
         return ModeDynamics(
@@ -528,8 +531,11 @@ class SpatialContactModel(ContactModelFields):
             solution = solve_mode_unchecked(problem, modes)
             if self.inconsistency_penalty > 0:
                 consistent = is_consistent(problem, solution, atol=self.consistency_tolerance)
+                loose = min(10 * self.consistency_tolerance, 1.0)
+                nearly = is_consistent(problem, solution, atol=loose)
             else:
                 consistent = torch.ones_like(solution.status.converged)
+                nearly = consistent
             f = self._advance(x.unsqueeze(1), solution.v_next)  # (P, K, 13)
             # Solved: converged, or consistent and solving the contact problem (a grasp's
             # redundant rows stall the equality residual above the solver's tolerance).
@@ -566,7 +572,9 @@ class SpatialContactModel(ContactModelFields):
         )
         c = torch.where(converged[..., None] & c.isfinite().all(-1, keepdim=True), c, 0.0)
         f = torch.where(converged[..., None], f, x.unsqueeze(1))
-        return _Linearization(F=F, f=f, c=c, converged=converged, consistent=consistent)
+        return _Linearization(
+            F=F, f=f, c=c, converged=converged, consistent=consistent, nearly=nearly
+        )
 
     def _closed_gaps(self, problem: ContactProblem, modes: Tensor) -> ContactProblem:
         """The problem of the consistency check: the gaps of the mode's contacts closed up to
