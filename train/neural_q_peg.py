@@ -42,10 +42,11 @@ feature (the network is QMDP wherever the camera sees). The greedy network is ev
 few rounds on validation episodes; the best (the untrained network, i.e. QMDP, included) is
 kept. Finally the settings are compared on the same fresh episodes (oracle, raw on the
 standard camera, QMDP, press-then-QMDP and the touch-and-shift probe on the occluded variant,
-neural). Writes TensorBoard logs, checkpoints,
-``network.pt`` and ``results.md`` to a new run folder, ``runs/neural_q_peg__<seed>__<unix
-time>``; a killed run continues where its last checkpoint left it, to the same result, with
-``--resume <that folder>`` (the same arguments; ``--rounds`` may grow).
+neural; seeded by ``--final-seed``, so runs of other training seeds can share them).
+Writes TensorBoard logs, checkpoints, ``network.pt`` and ``results.md`` to a new run folder,
+``runs/neural_q_peg__<seed>__<unix time>``; a killed run continues where its last checkpoint
+left it, to the same result, with ``--resume <that folder>`` (the same arguments; ``--rounds``
+may grow).
 """
 
 from __future__ import annotations
@@ -164,6 +165,9 @@ class Args:
     """validation episodes (the same every time)"""
     final_episodes: int = 200
     """episodes per setting in the final comparison"""
+    final_seed: int | None = None
+    """seed of the final comparison's episodes (None: --seed + 104729); runs with other
+    --seed values compare on the same episodes when they share it"""
     probe_episodes: float = 0.0
     """fraction of the training episodes whose behaviour probes: presses the peg down while
     the camera is blind and the belief's lateral spread exceeds --probe-threshold, until a
@@ -236,6 +240,8 @@ def check_args(args: Args) -> _Tabular:
     for name in ("seed", "learning_starts", "fitted_iterations", "updates_per_iteration"):
         check_int(name, getattr(args, name), low=0)
     check_int("epsilon_steps", args.epsilon_steps, low=0)
+    if args.final_seed is not None:
+        check_int("final_seed", args.final_seed, low=0)
     check_real("learning_rate", args.learning_rate, low=0.0, low_open=True)
     check_real("residual_penalty", args.residual_penalty, low=0.0)
     check_real("occlusion_radius", args.occlusion_radius, low=0.0)
@@ -378,7 +384,7 @@ def run(args: Args) -> dict[str, Any]:
         num_episodes=args.final_episodes,
         config=config,
         lookup=lookup,
-        seed=args.seed + 104_729,
+        seed=final_seed(args),
         filt=filt,
         network=network,
         probe_threshold=args.probe_threshold,
@@ -407,6 +413,11 @@ def run(args: Args) -> dict[str, Any]:
         "best_round": best["round"],
         "evaluations": {e.setting: e.success_rate for e in evaluations},
     }
+
+
+def final_seed(args: Args) -> int:
+    """The seed of the final comparison's episodes: ``--final-seed``, else ``--seed + 104729``."""
+    return args.seed + 104_729 if args.final_seed is None else args.final_seed
 
 
 def _kept(round_index: int) -> str:

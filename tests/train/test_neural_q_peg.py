@@ -190,6 +190,31 @@ def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
 
 
 @pytest.mark.parametrize(
+    ("change", "expected"), [({}, 3 + 104_729), ({"final_seed": 104_729}, 104_729)]
+)
+def test_the_final_comparison_is_seeded_by_final_seed(
+    module: ModuleType,
+    tabular_run: Path,
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    change: dict[str, int],
+    expected: int,
+) -> None:
+    """The final episodes' seed is ``--final-seed`` when given (so runs of other training
+    seeds share seed 0's episodes), else the documented ``--seed + 104729``."""
+    seeds: list[int] = []
+    original = module.evaluate_settings
+
+    def recording(*args: Any, **kwargs: Any) -> Any:
+        seeds.append(kwargs["seed"])
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(module, "evaluate_settings", recording)
+    module.run(_tiny(module, tmp_path, tabular_run, rounds=1, seed=3, **change))
+    assert seeds == [expected]
+
+
+@pytest.mark.parametrize(
     ("change", "message"),
     [
         ({"particles": 16}, r"particles: expected an int >= 24 \(the belief model's number of "),
@@ -206,6 +231,7 @@ def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
         ({"press_penalty": -1.0}, r"press_penalty: expected a finite number >= 0"),
         ({"shift_episodes": 1.5}, r"shift_episodes: expected a finite number in \[0.0, 1.0\]"),
         ({"targets": "mc"}, r"targets: expected one of \('td', 'monte_carlo'\)"),
+        ({"final_seed": -1}, r"final_seed: expected an int >= 0, got -1"),
     ],
 )
 def test_bad_arguments_fail_before_any_work(
