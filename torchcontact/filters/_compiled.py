@@ -42,13 +42,13 @@ RECOMPILE_LIMIT = 64
 
 
 @functools.cache
-def _compile(fn: Callable[..., Any]) -> Callable[..., Any]:
+def _compile(fn: Callable[..., Any], cpp_wrapper: bool) -> Callable[..., Any]:
     config = torch._dynamo.config
     config.recompile_limit = max(config.recompile_limit, RECOMPILE_LIMIT)
     # The C++ wrapper calls the generated kernels and library functions from C++ instead of
-    # a generated Python function: ~0.2 ms less per call of the contact linearization (its
-    # compilation takes about 1.7 times as long).
-    compiled = torch.compile(fn, dynamic=None, options={"cpp_wrapper": True})
+    # a generated Python function: ~0.2 ms less per call of the planar contact linearization
+    # (its compilation takes about 1.7 times as long).
+    compiled = torch.compile(fn, dynamic=None, options={"cpp_wrapper": cpp_wrapper})
 
     @functools.wraps(fn)
     def call(*args: Any, **kwargs: Any) -> Any:
@@ -72,6 +72,7 @@ def _fresh(value: Any) -> Any:
     return value
 
 
-def kernel(fn: _Kernel, *, compiled: bool) -> _Kernel:
-    """``fn`` itself, or its compiled form if ``compiled`` (one per process)."""
-    return cast(_Kernel, _compile(fn)) if compiled else fn
+def kernel(fn: _Kernel, *, compiled: bool, cpp_wrapper: bool = True) -> _Kernel:
+    """``fn`` itself, or its compiled form if ``compiled`` (one per process and
+    ``cpp_wrapper``: Inductor's C++ wrapper, or its Python wrapper, which compiles faster)."""
+    return cast(_Kernel, _compile(fn, cpp_wrapper)) if compiled else fn

@@ -19,6 +19,7 @@ from torchcontact.contact import (
     solve_mode,
     solve_mode_unchecked,
 )
+from torchcontact.filters._compiled import kernel
 from torchcontact.filters._contact_model import ContactModelFields, rollout_modes
 from torchcontact.filters._manifold import SE3, Manifold
 from torchcontact.filters._mode_gate import check_gate, gate_log_weight
@@ -201,6 +202,11 @@ class SpatialContactModel(ContactModelFields):
             out) of modes inconsistent at the linearization point; ``0`` disables the gate.
         consistency_tolerance: relative tolerance of the consistency check.
         consistency_gap: gaps (metres) of a mode's contacts that the check treats as closed.
+        compiled: run the linearization's contact assembly, mode solves and their derivative
+            through :func:`torch.compile` (one graph and its backward; see
+            ``torchcontact.filters._compiled``): the first step compiles (minutes on a CPU
+            for the BarrettHand scene; cached on disk for later processes), later steps take
+            a fraction of the eager time; the results agree with the eager ones to rounding.
 
     Construction validates every field and raises ``ValueError`` naming the field at fault.
     """
@@ -215,9 +221,12 @@ class SpatialContactModel(ContactModelFields):
     inconsistency_penalty: float = 5.0
     consistency_tolerance: float = 0.05
     consistency_gap: float = 0.003
+    compiled: bool = False
 
     def __post_init__(self) -> None:
         scene = self.scene
+        if not isinstance(self.compiled, bool):
+            raise ValueError(f"compiled: expected a bool, got {self.compiled!r}")
         if not isinstance(scene, Scene) or scene.dimension != 3:
             raise ValueError(f"scene: expected a spatial Scene, got {describe(scene)}")
         if len(scene.dynamic) != 1:
@@ -458,52 +467,32 @@ class SpatialContactModel(ContactModelFields):
         mode (``c`` its offsets); None: each mode's in its own (``c = 0``). The contact
         problems are assembled once per point (they do not depend on the mode) and reduced
         to the slots that some mode activates (the others are separated in every mode and
-        carry no impulse: the same steps).
+        carry no impulse: the same steps). With :attr:`compiled`, the steps in the tangent
+        (:func:`_tangent_steps`) run as one compiled graph and their derivative as its
+        compiled backward.
         """
         P, K, D = x.shape[0], self.num_modes, TANGENT_DIM
         slots = self._acting_slots.to(x.device)
         modes = self.modes.to(x.device).index_select(1, slots).expand(P, K, -1)
-        # One assembly: a batch of P·K·12 points retract(x, δ), δ = 0 requiring grad, whose
-        # values are the problems at x (in every mode) and whose derivatives along δ are
-        # taken by reverse-mode differentiation (faster here than forward mode): replica
-        # (p, k, i) yields row i of mode k's Jacobian at point p.
+        steps = kernel(_tangent_steps, compiled=self.compiled, cpp_wrapper=False)
+        # Reverse-mode differentiation (faster here than forward mode) of a batch of P·K·12
+        # points retract(x, δ), δ = 0: replica (p, k, i) yields row i of mode k's Jacobian.
         with torch.enable_grad():
             delta = x.new_zeros(P, K, D, D).requires_grad_()
-            moved = SE3.retract(x[:, None, None, :].expand(P, K, D, STATE_DIM), delta)
-            assembled, _ = robot_contact_problem(
-                self.scene, moved.reshape(-1, STATE_DIM), control.expand(K * D)
+            local, f, converged, consistent = steps(
+                self,
+                x,
+                delta,
+                modes,
+                slots,
+                None if chart_mode is None else chart_mode.to(x.device),
+                q_robot=control.q_robot,
+                v_robot=control.v_robot,
+                robot_base=control.robot_base,
+                base_twist=control.base_twist,
+                q_kinematic=control.q_kinematic,
+                v_kinematic=control.v_kinematic,
             )
-            problem_d = _select_slots(assembled, slots).reshape(P, K, D)
-        with torch.no_grad():
-            problem = problem_d.map_tensors(lambda t: t[:, :, 0].detach())  # (P, K) at x
-            if self.inconsistency_penalty > 0:
-                # The step and the consistency check's (gaps closed) in one solve.
-                closed = self._closed_gaps(problem, modes)
-                both = solve_mode_unchecked(_stack(problem, closed), torch.stack([modes, modes]))
-                solution = both.map_tensors(lambda t: t[0])
-                consistent = is_consistent(
-                    closed, both.map_tensors(lambda t: t[1]), atol=self.consistency_tolerance
-                )
-            else:
-                solution = solve_mode_unchecked(problem, modes)
-                consistent = torch.ones_like(solution.status.converged)
-            f = self._advance(x.unsqueeze(1), solution.v_next)  # (P, K, 13)
-            converged = solution.status.converged
-        if chart_mode is None:
-            chart = f
-        else:
-            chart = f.gather(1, chart_mode.to(x.device)[:, None, None].expand(P, 1, STATE_DIM))
-        # The mode solves warm-started at the converged impulses (see the class docstring).
-        start = (
-            solution.pn.unsqueeze(2).expand(P, K, D, -1),
-            solution.pt.unsqueeze(2).expand(P, K, D, *solution.pt.shape[-2:]),
-        )
-        with torch.enable_grad():
-            v_next = solve_mode_unchecked(
-                problem_d, modes.unsqueeze(2).expand(P, K, D, -1), initial_impulses=start
-            ).v_next
-            stepped = self._advance(moved, v_next)  # (P, K, 12, 13)
-            local = SE3.local(chart.unsqueeze(2).expand_as(stepped), stepped)
             (F,) = torch.autograd.grad(local.diagonal(dim1=-2, dim2=-1).sum(), delta)
         c = local.detach()[:, :, 0]
         # Placeholders where the mode is ruled out (its weight is -inf): finite, harmless.
@@ -709,6 +698,80 @@ def _with_phi(problem: ContactProblem, phi: Tensor) -> ContactProblem:
         bn=problem.b_normal,
         bt=problem.b_tangent,
     )
+
+
+def _tangent_steps(
+    model: SpatialContactModel,
+    x: Tensor,
+    delta: Tensor,
+    modes: Tensor,
+    slots: Tensor,
+    chart_mode: Tensor | None,
+    **control: Tensor | None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Every mode's step from ``retract(x, δ)``, in the tangent at the chart: the
+    differentiable core of :meth:`SpatialContactModel._linearize`.
+
+    Free of host synchronisations and of data-dependent shapes (``solve_mode``'s
+    ``sync_free`` inside :func:`torch.compile`), so that it traces as one graph.
+
+    Args:
+        model: the model (its scene and gate).
+        x: ``(P, 13)`` the linearization points.
+        delta: ``(P, K, 12, 12)`` tangent displacements (zeros that require grad).
+        modes: ``(P, K, S_a)`` long, the modes on the acting slots.
+        slots: ``(S_a,)`` long, the acting slots.
+        chart_mode: ``(P,)`` long, the mode whose step is every mode's chart, or None (each
+            mode's own).
+        **control: the fields of :class:`_Control`, flat batch ``(P, ...)``.
+
+    Returns:
+        ``local (P, K, 12, 12)`` ``local(chart, f_k(retract(x, δ)))``, ``f (P, K, 13)`` the
+        steps at ``x``, ``converged (P, K)`` and ``consistent (P, K)`` bool.
+    """
+    P, K, D = delta.shape[:3]
+    sync_free = torch.compiler.is_compiling()
+    moved = SE3.retract(x[:, None, None, :].expand(P, K, D, STATE_DIM), delta)
+    assembled, _ = robot_contact_problem(
+        model.scene,
+        moved.reshape(-1, STATE_DIM),
+        _Control(**control).expand(K * D),  # type: ignore[arg-type]  # the fields
+    )
+    problem_d = _select_slots(assembled, slots).reshape(P, K, D)
+    with torch.no_grad():
+        problem = problem_d.map_tensors(lambda t: t[:, :, 0].detach())  # (P, K) at x
+        if model.inconsistency_penalty > 0:
+            # The step and the consistency check's (gaps closed) in one solve.
+            closed = model._closed_gaps(problem, modes)
+            both = solve_mode_unchecked(
+                _stack(problem, closed), torch.stack([modes, modes]), sync_free=sync_free
+            )
+            solution = both.map_tensors(lambda t: t[0])
+            consistent = is_consistent(
+                closed, both.map_tensors(lambda t: t[1]), atol=model.consistency_tolerance
+            )
+        else:
+            solution = solve_mode_unchecked(problem, modes, sync_free=sync_free)
+            consistent = torch.ones_like(solution.status.converged)
+        f = model._advance(x.unsqueeze(1), solution.v_next)  # (P, K, 13)
+    if chart_mode is None:
+        chart = f
+    else:
+        chart = f.gather(1, chart_mode[:, None, None].expand(P, 1, STATE_DIM))
+    # The mode solves warm-started at the converged impulses (see the class docstring).
+    start = (
+        solution.pn.unsqueeze(2).expand(P, K, D, -1),
+        solution.pt.unsqueeze(2).expand(P, K, D, *solution.pt.shape[-2:]),
+    )
+    v_next = solve_mode_unchecked(
+        problem_d,
+        modes.unsqueeze(2).expand(P, K, D, -1),
+        initial_impulses=start,
+        sync_free=sync_free,
+    ).v_next
+    stepped = model._advance(moved, v_next)  # (P, K, 12, 13)
+    local = SE3.local(chart.unsqueeze(2).expand_as(stepped), stepped)
+    return local, f, solution.status.converged, consistent
 
 
 def _check_state(x: object) -> None:
