@@ -4,6 +4,7 @@ modes against a table and a kinematic robot, linearized per mode in the tangent 
 from __future__ import annotations
 
 import math
+import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -29,6 +30,8 @@ from torchcontact.geometry import SlotGeometry, quat_to_matrix
 from torchcontact.sim import Rollout, Scene, SceneState, contact_problem, integrate_poses
 from torchcontact.states import ContactSet, PartnerKind, TactileArray
 
+#: Scenes assembled eagerly in this process (see ``SpatialContactModel._linearize``).
+_ASSEMBLED: weakref.WeakSet[Scene] = weakref.WeakSet()
 STATE_DIM = 13  # position, quaternion (w, x, y, z), linear and angular velocity
 TANGENT_DIM = 12  # (δp, δθ, δv, δω)
 OBS_DIM = 7  # the camera's pose: position and quaternion
@@ -475,8 +478,15 @@ class SpatialContactModel(ContactModelFields):
         slots = self._acting_slots.to(x.device)
         modes = self.modes.to(x.device).index_select(1, slots).expand(P, K, -1)
         steps = kernel(_tangent_steps, compiled=self.compiled, cpp_wrapper=False)
+        if self.compiled and self.scene not in _ASSEMBLED:
+            # One eager assembly reads the scene's bodies into the simulator's cached layout,
+            # so that the compiled graph finds it (building it there would split the graph).
+            with torch.no_grad():
+                robot_contact_problem(self.scene, x, control)
+            _ASSEMBLED.add(self.scene)
         # Reverse-mode differentiation (faster here than forward mode) of a batch of P·K·12
         # points retract(x, δ), δ = 0: replica (p, k, i) yields row i of mode k's Jacobian.
+        own = torch.arange(K, device=x.device).expand(P, K)
         with torch.enable_grad():
             delta = x.new_zeros(P, K, D, D).requires_grad_()
             local, f, converged, consistent = steps(
@@ -485,7 +495,7 @@ class SpatialContactModel(ContactModelFields):
                 delta,
                 modes,
                 slots,
-                None if chart_mode is None else chart_mode.to(x.device),
+                own if chart_mode is None else chart_mode.to(x.device)[:, None].expand(P, K),
                 q_robot=control.q_robot,
                 v_robot=control.v_robot,
                 robot_base=control.robot_base,
@@ -706,7 +716,7 @@ def _tangent_steps(
     delta: Tensor,
     modes: Tensor,
     slots: Tensor,
-    chart_mode: Tensor | None,
+    chart_mode: Tensor,
     **control: Tensor | None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Every mode's step from ``retract(x, δ)``, in the tangent at the chart: the
@@ -721,8 +731,7 @@ def _tangent_steps(
         delta: ``(P, K, 12, 12)`` tangent displacements (zeros that require grad).
         modes: ``(P, K, S_a)`` long, the modes on the acting slots.
         slots: ``(S_a,)`` long, the acting slots.
-        chart_mode: ``(P,)`` long, the mode whose step is every mode's chart, or None (each
-            mode's own).
+        chart_mode: ``(P, K)`` long, the mode whose step is each mode's chart.
         **control: the fields of :class:`_Control`, flat batch ``(P, ...)``.
 
     Returns:
@@ -754,10 +763,7 @@ def _tangent_steps(
             solution = solve_mode_unchecked(problem, modes, sync_free=sync_free)
             consistent = torch.ones_like(solution.status.converged)
         f = model._advance(x.unsqueeze(1), solution.v_next)  # (P, K, 13)
-    if chart_mode is None:
-        chart = f
-    else:
-        chart = f.gather(1, chart_mode[:, None, None].expand(P, 1, STATE_DIM))
+    chart = f.gather(1, chart_mode.unsqueeze(-1).expand(P, K, STATE_DIM))
     # The mode solves warm-started at the converged impulses (see the class docstring).
     start = (
         solution.pn.unsqueeze(2).expand(P, K, D, -1),
