@@ -600,6 +600,7 @@ def test_bad_filter_inputs_name_the_argument() -> None:
         rbpf.step(belief, x[:7], control=control, mask=torch.ones(7, dtype=torch.bool))
 
 
+@pytest.mark.slow  # compiles the BarrettHand's assembly: minutes on a CPU
 def test_compiled_linearization_matches_finite_differences_and_the_eager_one() -> None:
     """``compiled=True`` (the assembly, mode solves and tangent steps as one compiled graph
     and its compiled backward) on the BarrettHand finger closing on a tilted box: the
