@@ -24,6 +24,8 @@ from torchcontact.filters import (
     ekf_update,
     project_out_of_contact,
 )
+from torchcontact.filters._mode_gate import gate_log_weight
+from torchcontact.filters._spatial_contact_model import group_states
 from torchcontact.geometry import Box, HalfSpace, Sphere, quat_exp, quat_mul, quat_to_matrix
 from torchcontact.robots import load
 from torchcontact.sim import Body, RobotMember, Scene, Simulator, contact_problem
@@ -116,6 +118,8 @@ def finite_difference_jacobian(
 def assert_jacobian_matches(
     model: SpatialContactModel, x: Tensor, control: RobotControl, *, relative: float = 1e-7
 ) -> None:
+    # No gap closed: the linearization is that of step() itself (closing: its own test).
+    model = dataclasses.replace(model, consistency_gap=0.0)
     F, f, converged = model.linearize(x, control=control)
     assert bool(converged.all())
     for k in range(model.num_modes):
@@ -598,6 +602,139 @@ def test_bad_filter_inputs_name_the_argument() -> None:
         rbpf.step(belief, x[:6], control=control)
     with pytest.raises(ValueError, match="mask"):
         rbpf.step(belief, x[:7], control=control, mask=torch.ones(7, dtype=torch.bool))
+
+
+def test_projection_sets_a_box_on_the_table_its_mode_touches() -> None:
+    """The same closed form from above: a box 5 mm over the table in a mode whose four bottom
+    corners touch is set down (the same update with gap +5 mm); in a mode where the table
+    does not touch, and without the mode table, it stays where it is."""
+    scene = hand_scene(height=1.0)
+    touching = torch.zeros(2, scene.num_slots, dtype=torch.long)
+    touching[0, :4] = 1  # mode 0: the bottom corners stick; mode 1: nothing touches
+    model = model_of(scene, touching)
+    height, p, sigma = 0.005, 1e-4, 1e-3
+    x = state((0.01, -0.02, HALF[2] + height), (0.1, 0.0, 0.0, 0.0, 0.0, 0.2))
+    belief = RBPF(model, 2).init(Gaussian(x, p * torch.eye(12, dtype=DT)))
+    belief = dataclasses.replace(belief, modes=torch.tensor([0, 1]))
+    zeros = torch.zeros(4, dtype=DT)
+    control = RobotControl(q_robot=zeros, v_robot=zeros)
+    projected = project_out_of_contact(
+        belief, scene, gap_sigma=sigma, control=control, mode_table=touching
+    )
+    var = 1.0 / (1.0 / p + 4.0 / sigma**2)
+    lowered = x.clone()
+    lowered[2] -= var * 4.0 * height / sigma**2
+    torch.testing.assert_close(projected.gaussians.mean[0], lowered, rtol=0.0, atol=1e-12)
+    torch.testing.assert_close(projected.gaussians.mean[1], x, rtol=0.0, atol=1e-15)
+    unmoved = project_out_of_contact(belief, scene, gap_sigma=sigma, control=control)
+    assert unmoved is belief
+    with pytest.raises(ValueError, match="mode_table"):
+        project_out_of_contact(
+            belief, scene, gap_sigma=sigma, control=control, mode_table=touching[:, :3]
+        )
+
+
+def test_gaps_within_the_tolerance_are_closed() -> None:
+    """A box 2 mm over the table, its bottom corners sticking: with the gap closed the step
+    is the one from 2 mm lower (the table's rows do not change under a vertical shift), so
+    the box stays 2 mm up at rest instead of dropping 2 mm in one step, and the Jacobian is
+    the lowered state's; without closing (gap 0) it is step()'s, which drops."""
+    scene = hand_scene(height=1.0)
+    modes = torch.zeros(1, scene.num_slots, dtype=torch.long)
+    modes[0, :4] = 1
+    lift = 0.002
+    x = state((0.01, -0.02, HALF[2] + lift))
+    lowered = state((0.01, -0.02, HALF[2]))
+    zeros = torch.zeros(4, dtype=DT)
+    control = RobotControl(q_robot=zeros, v_robot=zeros)
+    closing = model_of(scene, modes, consistency_gap=0.003)
+    F, f, converged = closing.linearize(x, control=control)
+    F_low, f_low, _ = closing.linearize(lowered, control=control)
+    assert bool(converged.all())
+    shifted = f_low.clone()
+    shifted[..., 2] += lift
+    torch.testing.assert_close(f, shifted, rtol=0.0, atol=1e-12)
+    torch.testing.assert_close(F, F_low, rtol=0.0, atol=1e-9 * float(F_low.abs().max()))
+    assert float(f[0, 2]) == pytest.approx(HALF[2] + lift, abs=1e-9)  # stays up, at rest
+    open_model = model_of(scene, modes, consistency_gap=0.0)
+    _, f_open, _ = open_model.linearize(x, control=control)
+    torch.testing.assert_close(
+        f_open[0], open_model.step(x, mode=torch.tensor(0), control=control), rtol=0, atol=1e-10
+    )
+    assert float(f_open[0, 2]) == pytest.approx(HALF[2], abs=1e-9)  # the gap closes in a step
+
+
+def test_group_states_take_the_largest_state_of_each_group() -> None:
+    """Hand-written modes: the table group (the box's corners) with one corner sticking and
+    one sliding along direction 3 is sliding (code 2) on every corner; a finger link group
+    with one sticking slot is sticking on all its slots; untouched groups stay 0."""
+    scene = hand_scene(height=1.0)
+    table = next(g for g in scene.slot_groups)
+    link = scene.robot_slot_groups[2]
+    mode = torch.zeros(scene.num_slots, dtype=torch.long)
+    mode[table.start] = 1
+    mode[table.start + 1] = 2 + 3
+    mode[link.start] = 1
+    expected = torch.zeros_like(mode)
+    expected[table.start : table.start + table.count] = 2
+    expected[link.start : link.start + link.count] = 1
+    assert (group_states(scene, mode[None]) == expected).all()  # integers: exact
+
+
+def test_resolved_slots_reproduce_the_simulators_step() -> None:
+    """A box sliding at 0.3 m/s along +x on the table, its mode given as group states only
+    (the table group sliding, every one of its 8 corner slots coded 2): at the state the
+    resolution keeps the 4 bottom corners (the top ones are 6 cm up), turns their friction
+    against the slip, and the step equals the simulator's exact (Lemke) step; the same
+    state with the table group sticking is inconsistent (the friction would leave the cone)."""
+    scene = hand_scene(height=1.0)
+    x = state((0.0, 0.0, HALF[2]), (0.3, 0.0, 0.0, 0.0, 0.0, 0.0))
+    zeros = torch.zeros(4, dtype=DT)
+    control = RobotControl(q_robot=zeros, v_robot=zeros)
+    table = next(g for g in scene.slot_groups)
+    sliding = torch.zeros(scene.num_slots, dtype=torch.long)
+    sliding[table.start : table.start + table.count] = 2
+    sticking = torch.where(sliding >= 1, 1, sliding)
+    model = model_of(
+        scene,
+        torch.stack([sliding, sticking]),
+        resolve_slots=True,
+        inconsistency_penalty=math.inf,
+        consistency_gap=0.003,
+    )
+    _, f, converged = model.linearize(x, control=control)
+    assert converged.tolist() == [True, True]
+    simulator = Simulator(scene)
+    start = simulator.initial_state(q=x[None, None, :7], v=x[None, None, 7:], q_robot=zeros[None])
+    result = simulator.step(start)
+    exact = torch.cat([result.state.q[0, 0], result.state.v[0, 0]])
+    torch.testing.assert_close(f[0], exact, rtol=0.0, atol=1e-9)
+    belief = RBPF(model, 2).init(Gaussian(x, 1e-8 * torch.eye(12, dtype=DT)))
+    weights = model.mode_dynamics(belief, control).mode_log_weight
+    assert weights is not None
+    assert float(weights[0]) == 0.0
+    assert float(weights[1]) == -math.inf
+
+
+def test_no_consistent_mode_leaves_the_solved_ones_to_the_evidence() -> None:
+    """With the inconsistent modes ruled out (penalty inf), an entry with no consistent mode
+    keeps its solved modes (those nearly consistent, if any are) at log-weight 0; unsolved
+    ones stay -inf, and an entry with a consistent mode is gated as usual."""
+    consistent = torch.tensor([[False, False, False], [True, False, False]])
+    converged = torch.tensor([[True, False, True], [True, True, False]])
+    weight = gate_log_weight(consistent, penalty=math.inf, dtype=DT, converged=converged)
+    inf = math.inf
+    expected = torch.tensor([[0.0, -inf, 0.0], [0.0, -inf, -inf]], dtype=DT)
+    assert (weight == expected).all()  # 0 and ±inf are exact
+    # with a looser verdict, only the stranded entry's nearly consistent solved modes stay
+    nearly = torch.tensor([[False, True, True], [False, False, False]])
+    weight = gate_log_weight(
+        consistent, penalty=math.inf, dtype=DT, converged=converged, nearly=nearly
+    )
+    expected = torch.tensor([[-inf, -inf, 0.0], [0.0, -inf, -inf]], dtype=DT)
+    assert (weight == expected).all()  # 0 and ±inf are exact
+    finite = gate_log_weight(consistent, penalty=5.0, dtype=DT, converged=converged)
+    assert (finite == torch.tensor([[-5.0, -inf, -5.0], [0.0, -5.0, -inf]], dtype=DT)).all()
 
 
 @pytest.mark.slow  # compiles the BarrettHand's assembly: minutes on a CPU

@@ -66,6 +66,9 @@ RBPF_NOISE_STD = (2e-4, 2e-4, 2e-4, 2e-3, 2e-3, 2e-3, 5e-3, 5e-3, 5e-3, 0.05, 0.
 BOX_METHODS = ("rbpf", "rbpf_no_projection", "pf", "pf_same_n", "ekf", "camera")
 #: The RBPF methods: with the projection out of contact, and without (the ablation).
 RBPF_METHODS = ("rbpf", "rbpf_no_projection")
+#: Gaps (m) of a mode's contacts that the RBPF's model takes as closed at the linearization
+#: point: two camera stds, the mixture mean's typical error along a contact normal.
+CONSISTENCY_GAP = 0.01
 #: The prior's std: position (m), rotation (rad), linear and angular velocity.
 PRIOR_STD = (0.005, 0.005, 0.005, 0.035, 0.035, 0.035, 0.01, 0.01, 0.01, 0.1, 0.1, 0.1)
 
@@ -232,6 +235,8 @@ def box_contact_model(settings: BarrettBoxGrasp, train: BoxTrials) -> SpatialCon
         R=torch.diag(settings.camera_std().pow(2)),
         tactile=hand_pads(settings, scene.robots[0].robot),
         inconsistency_penalty=math.inf,
+        consistency_gap=CONSISTENCY_GAP,
+        resolve_slots=True,
     )
 
 
@@ -275,7 +280,9 @@ def run_box_rbpf(
         if projection:
             # the robot where the step leaves it: the belief's time
             after = RobotControl(q_robot=q_robot[t + 1], v_robot=control.v_robot)
-            belief = project_out_of_contact(belief, model.scene, gap_sigma=gap_sigma, control=after)
+            belief = project_out_of_contact(
+                belief, model.scene, gap_sigma=gap_sigma, control=after, mode_table=model.modes
+            )
         poses.append(belief.mean()[..., :7])
         probs.append(torch.einsum("bk,kpc->bpc", belief.mode_marginals().to(F64), one_hot))
         clouds.append(belief.gaussians.mean[trial, :, :7].clone())

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import torch
 from torch import Tensor
 
 from torchcontact._checks import check_batched, check_real, describe
@@ -29,6 +30,7 @@ def project_out_of_contact(
     *,
     gap_sigma: float,
     control: RobotControl | None = None,
+    mode_table: Tensor | None = None,
 ) -> RBPFBelief:
     r"""Project every particle's Gaussian out of the bodies its mean penetrates.
 
@@ -57,7 +59,11 @@ def project_out_of_contact(
     :func:`~torchcontact.sim.contact_problem` at each particle's mean under the robots'
     ``control``, the update runs in the tangent at the mean (:math:`J_s = (n,\ (r \times
     n)^\top R)` along :math:`(\delta p, \delta\theta)`, ``R`` the body's rotation) and
-    its result is retracted onto the manifold.
+    its result is retracted onto the manifold. With the model's ``mode_table``, each
+    particle's Gaussian is also projected onto the contacts its mode closes: the slots
+    in contact in its mode (sticking or sliding, code ``>= 1``) get the same pseudo-measurement
+    whatever the sign of their gap, so a particle in a mode that sets the box on the table is
+    set on the table (the mode is a contact state; its gaps are zero).
 
     Args:
         belief: an RBPF belief, batch ``(*B,)`` with ``N`` particles whose state begins with
@@ -69,6 +75,8 @@ def project_out_of_contact(
         gap_sigma: ``σ``, the pseudo-measurement's noise std, metres, ``> 0``.
         control: the robots' joint positions and base poses (and kinematic bodies' poses) at
             the belief's time, batch ``*B`` (spatial scenes; their velocities are not used).
+        mode_table: ``(K, S)`` long, the model's per-slot modes of its ``K`` modes
+            (``S = scene.num_slots``; spatial scenes), or None: penetrated slots only.
 
     Returns:
         The belief with projected Gaussians.
@@ -87,7 +95,9 @@ def project_out_of_contact(
     if not isinstance(scene, Scene) or len(scene.dynamic) != 1:
         raise ValueError("scene: expected a Scene with one dynamic body")
     if scene.dimension == 3:
-        return _project_spatial(belief, scene, control, gap_sigma)
+        return _project_spatial(belief, scene, control, gap_sigma, mode_table)
+    if mode_table is not None:
+        raise ValueError("mode_table: supported on spatial scenes only")
     if not isinstance(q_kinematic, Tensor):
         raise ValueError(f"q_kinematic: required for a planar scene, got {describe(q_kinematic)}")
     g = belief.gaussians
@@ -116,7 +126,11 @@ def project_out_of_contact(
 
 
 def _project_spatial(
-    belief: RBPFBelief, scene: Scene, control: RobotControl | None, gap_sigma: float
+    belief: RBPFBelief,
+    scene: Scene,
+    control: RobotControl | None,
+    gap_sigma: float,
+    mode_table: Tensor | None,
 ) -> RBPFBelief:
     """:func:`project_out_of_contact` of a belief on SE(3) (see there)."""
     g = belief.gaussians
@@ -132,8 +146,20 @@ def _project_spatial(
     # Every particle of a batch entry shares its control.
     problem, geometry = robot_contact_problem(scene, flat, ctrl.expand(N))
     phi, Jn = geometry.phi, problem.Jn[..., :6]  # (P, S) unclamped gaps, (P, S, 6)
-    penetrating = geometry.active & (phi < 0)
-    slots = penetrating.any(0).nonzero().squeeze(-1)
+    constrained = geometry.active & (phi < 0)  # penetrated
+    if mode_table is not None:
+        K, S = belief.num_modes, scene.num_slots
+        if (
+            not isinstance(mode_table, Tensor)
+            or mode_table.dtype != torch.long
+            or tuple(mode_table.shape) != (K, S)
+        ):
+            raise ValueError(
+                f"mode_table: expected a long ({K}, {S}) tensor, got {describe(mode_table)}"
+            )
+        closed = mode_table.to(phi.device)[belief.modes.reshape(-1)] >= 1  # (P, S)
+        constrained = constrained | (geometry.active & closed)
+    slots = constrained.any(0).nonzero().squeeze(-1)
     if slots.numel() == 0:
         return belief
     m = int(slots.numel())
@@ -148,7 +174,7 @@ def _project_spatial(
         flat.new_zeros(P, TANGENT_DIM), g.cov.reshape(P, TANGENT_DIM, TANGENT_DIM)
     )
     projected, _ = kf_update(
-        tangent, flat.new_zeros(P, m), H=H, d=d, R=R, mask=penetrating[:, slots]
+        tangent, flat.new_zeros(P, m), H=H, d=d, R=R, mask=constrained[:, slots]
     )
     mean = SE3.retract(flat, projected.mean)
     gaussians = unchecked_gaussian(mean.reshape(g.mean.shape), projected.cov.reshape(g.cov.shape))

@@ -3,6 +3,7 @@ modes against a table and a kinematic robot, linearized per mode in the tangent 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import weakref
 from collections.abc import Mapping
@@ -14,11 +15,16 @@ from torch import Tensor
 
 from torchcontact._checks import FLOAT_DTYPES, describe
 from torchcontact.contact import (
+    SEPARATED,
+    SLIDING,
     ContactProblem,
-    consistent_with_mode,
+    is_consistent,
+    is_sliding,
     num_modes,
+    relative_residual,
     solve_mode,
     solve_mode_unchecked,
+    update_mode,
 )
 from torchcontact.filters._compiled import kernel
 from torchcontact.filters._contact_model import ContactModelFields, rollout_modes
@@ -107,6 +113,7 @@ class _Linearization:
         c: ``(P, K, 12)`` ``local(chart, f_k(x̄))`` (zero with the per-mode charts).
         converged: ``(P, K)`` bool, the mode's equalities were solved at ``x̄``.
         consistent: ``(P, K)`` bool, the gate's verdict (True where it is off).
+        nearly: ``(P, K)`` bool, the verdict with ten times the tolerance.
     """
 
     F: Tensor
@@ -114,6 +121,7 @@ class _Linearization:
     c: Tensor
     converged: Tensor
     consistent: Tensor
+    nearly: Tensor
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
@@ -172,8 +180,36 @@ class SpatialContactModel(ContactModelFields):
     geometry (each slot's closest features, the candidate slots, the friction directions'
     hemisphere of :func:`~torchcontact.sim.tangent_basis`) are held.
 
+    Gaps closed. The mixture mean is an estimate: a box resting on the table may have a mean
+    a few millimetres above or inside it. Mode :math:`k` says which contacts touch, so its
+    step at :math:`\bar x` is taken with the gaps of those contacts closed up to
+    ``consistency_gap`` (a gap :math:`\phi` becomes :math:`\phi - \mathrm{clip}(\phi,
+    \pm\,\mathrm{gap})`): the mean's error along a contact normal is not turned into a
+    velocity that closes it within one step. The Jacobian holds that shift fixed (the
+    derivative of the gaps is kept). With ``consistency_gap = 0`` the linearization is that
+    of :meth:`step`.
+
+    Contacts resolved at the mean. A rollout's contacts fix which corners of a box touch
+    and along which of ``D`` directions (or a face between two) each slides; modes that
+    differ only there multiply the table (a finger pushing a box over the table: every
+    corner's direction), and a table of a few rollouts misses most of them. With
+    ``resolve_slots`` a mode fixes only the state of each slot group (the slots of one
+    shape pair: the box and the table, the box and one finger link): separated, sticking or
+    sliding. At :math:`\bar x` the group's slots within ``consistency_gap`` of touching take
+    its state and the others separate; one :func:`~torchcontact.contact.update_mode` round
+    separates those that would pull; each sliding slot's friction takes the direction most
+    opposed to its slip in the step with the sliding slots frictionless (maximal
+    dissipation), then one more round moves it between an edge and the adjacent faces of
+    the cone. A mode none of whose slots of a touching group lies within the gap is ruled
+    out. The step, its Jacobian, the gate and the tactile evidence are those of the
+    resolved slots.
+
     Modes ruled out. A mode whose equalities contradict each other at :math:`\bar x` (its
-    ``solve_mode`` does not converge) gets the log-weight :math:`-\infty` for the step
+    ``solve_mode`` does not converge and its answer does not solve the contact problem
+    within :data:`SOLVED_RESIDUAL` of its scales, as the simulator's retry rule: a grasp's
+    redundant rows
+    stall the equality residual above the solver's tolerance while the impulses are
+    consistent and solve the problem) gets the log-weight :math:`-\infty` for the step
     (``ModeDynamics.mode_log_weight``; its ``F`` and ``c`` are placeholders, the identity
     and the chart's origin). A mode that converges but contradicts itself (a separated slot
     that would penetrate, friction that would reverse the slip, a contact that would pull)
@@ -204,9 +240,13 @@ class SpatialContactModel(ContactModelFields):
         inconsistency_penalty: log-weight penalty (nats, ``>= 0``; ``inf`` rules such modes
             out) of modes inconsistent at the linearization point; ``0`` disables the gate.
         consistency_tolerance: relative tolerance of the consistency check.
-        consistency_gap: gaps (metres) of a mode's contacts that the check treats as closed.
-        compiled: run the linearization's contact assembly, mode solves and their derivative
-            through :func:`torch.compile` (one graph and its backward; see
+        consistency_gap: gaps (metres) of a mode's contacts that the linearized step and the
+            consistency check treat as closed.
+        resolve_slots: a mode fixes the state of each slot group; its slots and sliding
+            directions are resolved at the linearization point (see the class docstring).
+            :meth:`from_rollout` then merges the modes with the same group states.
+        compiled: run the linearization's contact assembly and its mode steps in the tangent
+            through :func:`torch.compile` (two graphs and their backward; see
             ``torchcontact.filters._compiled``): the first step compiles (minutes on a CPU
             for the BarrettHand scene; cached on disk for later processes), later steps take
             a fraction of the eager time; the results agree with the eager ones to rounding.
@@ -224,6 +264,7 @@ class SpatialContactModel(ContactModelFields):
     inconsistency_penalty: float = 5.0
     consistency_tolerance: float = 0.05
     consistency_gap: float = 0.003
+    resolve_slots: bool = False
     compiled: bool = False
 
     def __post_init__(self) -> None:
@@ -318,7 +359,10 @@ class SpatialContactModel(ContactModelFields):
 
         The mode table is :func:`collect_modes` of ``rollout.mode``, the transition
         :func:`empirical_transition` of its mode ids, and the first mode's distribution the
-        ids' frequencies at the first step, with the same additive ``smoothing``. The
+        ids' frequencies at the first step, with the same additive ``smoothing`` (with
+        ``resolve_slots=True`` among the options, of the slot groups' states: every slot of
+        a group takes the group's state, the largest of its slots' states, separated 0,
+        sticking 1, sliding 2). The
         rollouts may come from a scene whose robots are servoed (the simulator's); ``scene``
         is the filter's, with the same slots and kinematic robots.
 
@@ -334,6 +378,8 @@ class SpatialContactModel(ContactModelFields):
             ValueError: naming ``rollout`` if it is not a :class:`~torchcontact.sim.Rollout`
                 of at least one step, or the field at fault.
         """
+        if options.get("resolve_slots", False) and isinstance(rollout, Rollout):
+            rollout = dataclasses.replace(rollout, mode=group_states(scene, rollout.mode))
         table, transition, initial = rollout_modes(rollout, R=R, smoothing=smoothing)
         return cls(
             scene=scene,
@@ -395,6 +441,7 @@ class SpatialContactModel(ContactModelFields):
             penalty=self.inconsistency_penalty,
             dtype=dtype,
             converged=lin.converged,
+            nearly=lin.nearly,
         )
         noise = self._noise
         return ModeDynamics(
@@ -470,40 +517,73 @@ class SpatialContactModel(ContactModelFields):
         mode (``c`` its offsets); None: each mode's in its own (``c = 0``). The contact
         problems are assembled once per point (they do not depend on the mode) and reduced
         to the slots that some mode activates (the others are separated in every mode and
-        carry no impulse: the same steps). With :attr:`compiled`, the steps in the tangent
-        (:func:`_tangent_steps`) run as one compiled graph and their derivative as its
-        compiled backward.
+        carry no impulse: the same steps). With :attr:`compiled`, the two differentiated
+        parts, the assembly of the replicas (:func:`_replica_problems`) and their steps in
+        the tangent (:func:`_tangent_steps`), run as compiled graphs and their derivative as
+        their compiled backward; the mode solves at ``x`` between them run eagerly.
         """
         P, K, D = x.shape[0], self.num_modes, TANGENT_DIM
         slots = self._acting_slots.to(x.device)
         modes = self.modes.to(x.device).index_select(1, slots).expand(P, K, -1)
         # Static shapes (a filter's K and batch do not change), the Python wrapper (the C++
         # one takes about 1.7 times as long to compile).
-        steps = kernel(_tangent_steps, compiled=self.compiled, cpp_wrapper=False, dynamic=False)
+        options: dict[str, Any] = {"compiled": self.compiled, "cpp_wrapper": False}
+        options["dynamic"] = False
         if self.compiled and self.scene not in _ASSEMBLED:
             # One eager assembly reads the scene's bodies into the simulator's cached layout,
             # so that the compiled graph finds it (building it there would split the graph).
             with torch.no_grad():
                 robot_contact_problem(self.scene, x, control)
             _ASSEMBLED.add(self.scene)
-        # Reverse-mode differentiation (faster here than forward mode) of a batch of P·K·12
-        # points retract(x, δ), δ = 0: replica (p, k, i) yields row i of mode k's Jacobian.
-        own = torch.arange(K, device=x.device).expand(P, K)
+        # One assembly: a batch of P·K·12 points retract(x, δ), δ = 0 requiring grad, whose
+        # values are the problems at x (in every mode) and whose derivatives along δ are
+        # taken by reverse-mode differentiation (faster here than forward mode): replica
+        # (p, k, i) yields row i of mode k's Jacobian at point p.
         with torch.enable_grad():
             delta = x.new_zeros(P, K, D, D).requires_grad_()
-            local, f, converged, consistent = steps(
-                self,
+            moved, fields = kernel(_replica_problems, **options)(
+                self.scene,
                 x,
                 delta,
-                modes,
                 slots,
-                own if chart_mode is None else chart_mode.to(x.device)[:, None].expand(P, K),
                 q_robot=control.q_robot,
                 v_robot=control.v_robot,
                 robot_base=control.robot_base,
                 base_twist=control.base_twist,
                 q_kinematic=control.q_kinematic,
                 v_kinematic=control.v_kinematic,
+            )
+            problem_d = ContactProblem.unchecked(h=self.scene.h, **fields)
+        with torch.no_grad():
+            # (P, K) at x with the gaps of each mode's contacts closed: the step and the check
+            at_x = problem_d.map_tensors(lambda t: t[:, :, 0].detach())  # (P, K)
+            reachable = torch.ones(P, K, dtype=torch.bool, device=x.device)
+            if self.resolve_slots:
+                modes, reachable = self._resolved(at_x, modes, slots)
+            problem = self._closed_gaps(at_x, modes)
+            solution = solve_mode_unchecked(problem, modes)
+            if self.inconsistency_penalty > 0:
+                consistent = is_consistent(problem, solution, atol=self.consistency_tolerance)
+                loose = min(10 * self.consistency_tolerance, 1.0)
+                nearly = is_consistent(problem, solution, atol=loose)
+            else:
+                consistent = torch.ones_like(solution.status.converged)
+                nearly = consistent
+            f = self._advance(x.unsqueeze(1), solution.v_next)  # (P, K, 13)
+            # Solved: converged, or consistent and solving the contact problem (a grasp's
+            # redundant rows stall the equality residual above the solver's tolerance).
+            residual = relative_residual(
+                problem, v_next=solution.v_next, pn=solution.pn, pt=solution.pt
+            )
+            converged = solution.status.converged | (consistent & (residual <= SOLVED_RESIDUAL))
+            converged = converged & reachable
+        if chart_mode is None:
+            chart = f
+        else:
+            chart = f.gather(1, chart_mode.to(x.device)[:, None, None].expand(P, K, STATE_DIM))
+        with torch.enable_grad():
+            local = kernel(_tangent_steps, **options)(
+                self, moved, fields, problem.phi, modes, chart, solution.pn, solution.pt
             )
             (F,) = torch.autograd.grad(local.diagonal(dim1=-2, dim2=-1).sum(), delta)
         c = local.detach()[:, :, 0]
@@ -514,7 +594,9 @@ class SpatialContactModel(ContactModelFields):
         )
         c = torch.where(converged[..., None] & c.isfinite().all(-1, keepdim=True), c, 0.0)
         f = torch.where(converged[..., None], f, x.unsqueeze(1))
-        return _Linearization(F=F, f=f, c=c, converged=converged, consistent=consistent)
+        return _Linearization(
+            F=F, f=f, c=c, converged=converged, consistent=consistent, nearly=nearly
+        )
 
     def _closed_gaps(self, problem: ContactProblem, modes: Tensor) -> ContactProblem:
         """The problem of the consistency check: the gaps of the mode's contacts closed up to
@@ -522,6 +604,33 @@ class SpatialContactModel(ContactModelFields):
         activates (a slot that none does would make every mode inconsistent alike)."""
         gap, phi = self.consistency_gap, problem.phi
         return _with_phi(problem, torch.where(modes >= 1, phi - phi.clamp(-gap, gap), phi))
+
+    def _resolved(
+        self, problem: ContactProblem, modes: Tensor, slots: Tensor
+    ) -> tuple[Tensor, Tensor]:
+        """The slots and sliding directions of group-state ``modes (P, K, S_a)`` resolved
+        at ``problem`` (on the acting ``slots``), and ``(P, K)`` bool, every touching group
+        has a slot within the gap (see the class docstring)."""
+        groups = self._slot_groups.to(modes.device).index_select(0, slots)  # (S_a,)
+        near = problem.phi <= self.consistency_gap
+        touching = modes >= 1
+        resolved = torch.where(touching & near, modes, SEPARATED)
+        G = int(self._slot_groups.max()) + 1
+        per_group = torch.zeros(*modes.shape[:-1], G, dtype=torch.long, device=modes.device)
+        index = groups.expand_as(modes)
+        wanted = per_group.scatter_reduce(-1, index, touching.long(), "amax") > 0
+        found = per_group.scatter_reduce(-1, index, (touching & near).long(), "amax") > 0
+        reachable = (found | ~wanted).all(-1)
+        # one round: the slots that would pull separate
+        closed = self._closed_gaps(problem, resolved)
+        corrected = update_mode(closed, solve_mode_unchecked(closed, resolved))
+        resolved = torch.where((resolved >= 1) & (corrected == SEPARATED), SEPARATED, resolved)
+        return _resolved_sliding(self._closed_gaps(problem, resolved), resolved), reachable
+
+    @property
+    def _slot_groups(self) -> Tensor:
+        """``(S,)`` long: each slot's group (the scene's slot groups, then its robots')."""
+        return slot_group_ids(self.scene)
 
     def _advance(self, x: Tensor, v_next: Tensor) -> Tensor:
         """``(*P, 13)``: the pose integrated over the step with the twist ``v_next (*P, 6)``
@@ -584,6 +693,9 @@ class SpatialContactModel(ContactModelFields):
         _, geometry = robot_contact_problem(self.scene, x, ctrl)
         acting, which = self._acting_sets  # (U, S), (K,)
         U = acting.shape[0]
+        # the slots each set activates at this pose: resolved slots are within the gap
+        near = (geometry.phi <= self.consistency_gap) | (not self.resolve_slots)  # (P, S)
+        acting = acting * near[:, None].long()  # (P, U, S)
         log_lik = x.new_zeros(P, U)
         flat_readings = readings.expand(*batch, total).reshape(P, total)
         start = 0
@@ -598,7 +710,7 @@ class SpatialContactModel(ContactModelFields):
                 points=points.unsqueeze(1).expand(P, U, L, 3).to(dtype),
                 normals=normals.unsqueeze(1).expand(P, U, L, 3).to(dtype),
                 pn=torch.ones(P, U, L, dtype=dtype, device=x.device),
-                mode=acting[:, slots].expand(P, U, L),
+                mode=acting[..., slots],
                 partner=torch.zeros(L, dtype=torch.long, device=x.device),
                 partner_kind=[PartnerKind.ENVIRONMENT],
                 mask=geometry.active[:, slots].unsqueeze(1).expand(P, U, L),
@@ -664,6 +776,57 @@ class SpatialContactModel(ContactModelFields):
         return origin, turn @ transform[:, :3, :3]
 
 
+def slot_group_ids(scene: Scene) -> Tensor:
+    """``(S,)`` long: the index of each slot's group, the scene's
+    :attr:`~torchcontact.sim.Scene.slot_groups` then its robots' groups in order."""
+    ids = torch.empty(scene.num_slots, dtype=torch.long)
+    spans = [(g.start, g.count) for g in scene.slot_groups]
+    spans += [(g.start, g.count) for g in scene.robot_slot_groups]
+    for index, (start, count) in enumerate(spans):
+        ids[start : start + count] = index
+    return ids
+
+
+def group_states(scene: Scene, modes: Tensor) -> Tensor:
+    """``modes (..., S)`` with every slot set to its group's state: the largest of the
+    group's slots' states (separated 0, sticking 1, sliding 2: every sliding code is 2).
+
+    Args:
+        scene: the scene whose slots ``modes`` encodes.
+        modes: ``(..., S)`` long per-slot modes.
+
+    Returns:
+        ``(..., S)`` long.
+    """
+    ids = slot_group_ids(scene).to(modes.device)
+    state = modes.clamp(max=SLIDING)
+    G = int(ids.max()) + 1 if ids.numel() else 0
+    per_group = torch.zeros(*modes.shape[:-1], G, dtype=modes.dtype, device=modes.device)
+    per_group = per_group.scatter_reduce(-1, ids.expand_as(state), state, "amax")
+    return per_group.index_select(-1, ids)
+
+
+def _resolved_sliding(problem: ContactProblem, modes: Tensor) -> Tensor:
+    """``modes (*B, S)`` with each sliding slot's friction direction resolved at ``problem``
+    (see the class docstring: the direction most opposed to the slip of the step with the
+    sliding slots frictionless, then one edge/face correction)."""
+    sliding = is_sliding(modes)
+    frictionless = _with_mu(problem, torch.where(sliding, 0.0, problem.mu))
+    v_next = solve_mode_unchecked(frictionless, modes).v_next
+    slip = (problem.Jt @ v_next[..., None, :, None]).squeeze(-1) + problem.b_tangent
+    modes = torch.where(sliding, SLIDING + slip.argmin(-1), modes)
+    corrected = update_mode(problem, solve_mode_unchecked(problem, modes))
+    return torch.where(sliding & is_sliding(corrected), corrected, modes)
+
+
+#: Largest relative LCP residual (:func:`~torchcontact.contact.relative_residual`) of a mode
+#: solve that did not converge but is consistent and taken as solved: the step's velocities
+#: and impulses are off by at most that share of the problem's scales. Equalities that
+#: contradict each other leave residuals of the order of the scales; a grasp's redundant rows
+#: stall the iterations at 1e-5 to 1e-2 of them (BarrettHand on a box).
+SOLVED_RESIDUAL = 1e-2
+
+
 def _select_slots(problem: ContactProblem, slots: Tensor) -> ContactProblem:
     """The problem ``(*B,)`` restricted to ``slots (S_a,)``."""
     return ContactProblem.unchecked(
@@ -686,17 +849,18 @@ def _per_mode(problem: ContactProblem, K: int) -> ContactProblem:
     return problem.map_tensors(lambda t: t.unsqueeze(1).expand(t.shape[0], K, *t.shape[1:]))
 
 
-def _stack(first: ContactProblem, second: ContactProblem) -> ContactProblem:
-    """Two problems of batch ``*B`` as one of batch ``(2, *B)``."""
-    names = ("M", "v", "f", "Jn", "Jt", "phi", "mu", "mask", "bn", "bt")
-    a = {name: getattr(first, name) for name in names}
-    b = {name: getattr(second, name) for name in names}
-    stacked = {name: torch.stack([a[name], b[name].expand_as(a[name])]) for name in names}
-    return ContactProblem.unchecked(h=first.h, **stacked)
-
-
 def _with_phi(problem: ContactProblem, phi: Tensor) -> ContactProblem:
     """The problem with the gaps ``phi``."""
+    return _replaced(problem, phi=phi, mu=problem.mu)
+
+
+def _with_mu(problem: ContactProblem, mu: Tensor) -> ContactProblem:
+    """The problem with the friction coefficients ``mu``."""
+    return _replaced(problem, phi=problem.phi, mu=mu)
+
+
+def _replaced(problem: ContactProblem, *, phi: Tensor, mu: Tensor) -> ContactProblem:
+    """The problem with the gaps ``phi`` and friction coefficients ``mu``."""
     return ContactProblem.unchecked(
         M=problem.M,
         v=problem.v,
@@ -704,7 +868,7 @@ def _with_phi(problem: ContactProblem, phi: Tensor) -> ContactProblem:
         Jn=problem.Jn,
         Jt=problem.Jt,
         phi=phi,
-        mu=problem.mu,
+        mu=mu,
         h=problem.h,
         mask=problem.slot_mask,
         bn=problem.b_normal,
@@ -712,80 +876,69 @@ def _with_phi(problem: ContactProblem, phi: Tensor) -> ContactProblem:
     )
 
 
-def _tangent_steps(
-    model: SpatialContactModel,
-    x: Tensor,
-    delta: Tensor,
-    modes: Tensor,
-    slots: Tensor,
-    chart_mode: Tensor,
-    **control: Tensor | None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Every mode's step from ``retract(x, δ)``, in the tangent at the chart: the
-    differentiable core of :meth:`SpatialContactModel._linearize`.
-
-    Free of host synchronisations and of data-dependent shapes (``solve_mode``'s
-    ``sync_free`` inside :func:`torch.compile`), so that it traces as one graph.
+def _replica_problems(
+    scene: Scene, x: Tensor, delta: Tensor, slots: Tensor, **control: Tensor | None
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """The points ``retract(x, δ)`` ``(P, K, 12, 13)`` and the fields of their contact
+    problems on the acting ``slots``, batch ``(P, K, 12)`` (``ContactProblem.unchecked``'s
+    keywords): the first differentiated part of :meth:`SpatialContactModel._linearize`.
 
     Args:
-        model: the model (its scene and gate).
+        scene: the model's scene.
         x: ``(P, 13)`` the linearization points.
         delta: ``(P, K, 12, 12)`` tangent displacements (zeros that require grad).
-        modes: ``(P, K, S_a)`` long, the modes on the acting slots.
         slots: ``(S_a,)`` long, the acting slots.
-        chart_mode: ``(P, K)`` long, the mode whose step is each mode's chart.
         **control: the fields of :class:`_Control`, flat batch ``(P, ...)``.
-
-    Returns:
-        ``local (P, K, 12, 12)`` ``local(chart, f_k(retract(x, δ)))``, ``f (P, K, 13)`` the
-        steps at ``x``, ``converged (P, K)`` and ``consistent (P, K)`` bool.
     """
     P, K, D = delta.shape[:3]
-    sync_free = torch.compiler.is_compiling()
     moved = SE3.retract(x[:, None, None, :].expand(P, K, D, STATE_DIM), delta)
     assembled, _ = robot_contact_problem(
-        model.scene,
+        scene,
         moved.reshape(-1, STATE_DIM),
         _Control(**control).expand(K * D),  # type: ignore[arg-type]  # the fields
     )
-    problem_d = _select_slots(assembled, slots).reshape(P, K, D)
-    with torch.no_grad():
-        problem = problem_d.map_tensors(lambda t: t[:, :, 0].detach())  # (P, K) at x
-        if model.inconsistency_penalty > 0:
-            # The step and the consistency check's (gaps closed) in one solve.
-            closed = model._closed_gaps(problem, modes)
-            both = solve_mode_unchecked(
-                _stack(problem, closed), torch.stack([modes, modes]), sync_free=sync_free
-            )
-            solution = both.map_tensors(lambda t: t[0])
-            # is_consistent without its validation (a host synchronisation)
-            consistent = consistent_with_mode(
-                closed,
-                v_next=both.v_next[1],
-                pn=both.pn[1],
-                pt=both.pt[1],
-                mode=both.mode[1],
-                atol=model.consistency_tolerance,
-            )
-        else:
-            solution = solve_mode_unchecked(problem, modes, sync_free=sync_free)
-            consistent = torch.ones_like(solution.status.converged)
-        f = model._advance(x.unsqueeze(1), solution.v_next)  # (P, K, 13)
-    chart = f.gather(1, chart_mode.unsqueeze(-1).expand(P, K, STATE_DIM))
-    # The mode solves warm-started at the converged impulses (see the class docstring).
-    start = (
-        solution.pn.unsqueeze(2).expand(P, K, D, -1),
-        solution.pt.unsqueeze(2).expand(P, K, D, *solution.pt.shape[-2:]),
-    )
+    problem = _select_slots(assembled, slots).reshape(P, K, D)
+    names = ("M", "v", "f", "Jn", "Jt", "phi", "mu", "mask", "bn", "bt")
+    return moved, {name: getattr(problem, name) for name in names}
+
+
+def _tangent_steps(
+    model: SpatialContactModel,
+    moved: Tensor,
+    fields: dict[str, Tensor],
+    closed_phi: Tensor,
+    modes: Tensor,
+    chart: Tensor,
+    pn: Tensor,
+    pt: Tensor,
+) -> Tensor:
+    """``local(chart, f_k(retract(x, δ)))`` ``(P, K, 12, 12)``: every mode's step from the
+    replicas, in the tangent at the chart, the mode solves warm-started at the converged
+    impulses at ``x`` (see the class docstring): the second differentiated part of
+    :meth:`SpatialContactModel._linearize`.
+
+    Args:
+        model: the model (its scene).
+        moved: ``(P, K, 12, 13)`` the replicas' points.
+        fields: their problems' fields (:func:`_replica_problems`).
+        closed_phi: ``(P, K, S_a)`` the gaps at ``x`` with the mode's contacts closed (the
+            replicas' gaps are shifted by the closing at ``x``, held: no derivative).
+        modes: ``(P, K, S_a)`` long, the modes on the acting slots.
+        chart: ``(P, K, 13)`` each mode's chart.
+        pn: ``(P, K, S_a)``, ``pt (P, K, S_a, D)`` the converged impulses at ``x``.
+    """
+    P, K, D = moved.shape[:3]
+    problem_d = ContactProblem.unchecked(h=model.scene.h, **fields)
+    closing = (closed_phi - problem_d.phi[:, :, 0].detach()).unsqueeze(2)
+    start = (pn.unsqueeze(2).expand(P, K, D, -1), pt.unsqueeze(2).expand(P, K, D, *pt.shape[-2:]))
     v_next = solve_mode_unchecked(
-        problem_d,
+        _with_phi(problem_d, problem_d.phi + closing),
         modes.unsqueeze(2).expand(P, K, D, -1),
         initial_impulses=start,
-        sync_free=sync_free,
+        sync_free=torch.compiler.is_compiling(),
     ).v_next
     stepped = model._advance(moved, v_next)  # (P, K, 12, 13)
-    local = SE3.local(chart.unsqueeze(2).expand_as(stepped), stepped)
-    return local, f, solution.status.converged, consistent
+    return SE3.local(chart.unsqueeze(2).expand_as(stepped), stepped)
 
 
 def _check_state(x: object) -> None:
