@@ -763,8 +763,9 @@ def test_compiled_linearization_matches_finite_differences_and_the_eager_one() -
         modes[1, slot] = sliding_along(scene, x, slot, up, q_robot=q_robot[None])
     modes[2, outer : outer + 2] = 1  # contradicts itself: not solved
     control = RobotControl(q_robot=q_robot, v_robot=v_robot)
-    compiled = model_of(scene, modes, compiled=True)
-    eager = model_of(scene, modes)
+    # No gap closed: the linearization is that of step() (see assert_jacobian_matches).
+    compiled = model_of(scene, modes, compiled=True, consistency_gap=0.0)
+    eager = model_of(scene, modes, consistency_gap=0.0)
     F, f, converged = compiled.linearize(x, control=control)
     F_eager, f_eager, converged_eager = eager.linearize(x, control=control)
     assert (converged == converged_eager).all()  # bools: exact
