@@ -739,13 +739,13 @@ def test_no_consistent_mode_leaves_the_solved_ones_to_the_evidence() -> None:
 
 @pytest.mark.slow  # compiles the BarrettHand's assembly: minutes on a CPU
 def test_compiled_linearization_matches_finite_differences_and_the_eager_one() -> None:
-    """``compiled=True`` (the assembly, mode solves and tangent steps as one compiled graph
+    """``compiled=True`` (the contact assembly of the tangent replicas as a compiled graph
     and its compiled backward) on the BarrettHand finger closing on a tilted box: the
     Jacobians against finite differences as for the eager model, and the steps, Jacobians and
-    gate against the eager model's. The compiled kernels sum in another order and the
-    traced mode solve runs all its Tikhonov iterations (the eager one stops at a fixed
-    point): the results agree to rounding, amplified by the systems' regularised condition
-    (~1e6, the Tikhonov shift √eps of the diagonal): 1e-9 of the largest entry."""
+    gate against the eager model's. The compiled kernels sum in another order: the problems'
+    fields agree to rounding (1e-15 relative), which the mode solves amplify by their
+    regularised condition (~1e6, the Tikhonov shift √eps of the diagonal): 1e-9 of the
+    largest entry."""
     scene = hand_scene(height=0.224)
     turn = quat_exp(torch.tensor([0.15, 0.1, 0.2], dtype=DT))
     x = torch.cat([torch.tensor([0.0, 0.0, 0.1], dtype=DT), turn, torch.zeros(6, dtype=DT)])

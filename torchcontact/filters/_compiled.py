@@ -9,13 +9,13 @@ batched LAPACK calls of the linearization stay library calls. The code that call
 and allocates their buffers is generated in C++ as well (Inductor's ``cpp_wrapper``).
 
 The spatial contact model's linearization (:class:`~torchcontact.filters.SpatialContactModel`
-with ``compiled=True``) compiles the whole differentiated step, from the tangent displacement
-through the contact assembly (a robot's forward kinematics, every slot's geometry) and the
-mode solves to the step in the chart, as one graph; AOTAutograd compiles its backward. It has
-no host synchronisation inside: the checks skip themselves in a traced region (the model
-validates at its public methods), data-dependent branches run masked. Its shapes are static
-(``dynamic=False``: a filter's modes and batch do not change) and it uses Inductor's Python
-wrapper, which compiles this large graph faster.
+with ``compiled=True``) compiles the contact assembly of its tangent replicas (a robot's
+forward kinematics, every slot's geometry) as one graph; AOTAutograd compiles its backward.
+It has no host synchronisation inside: the checks skip themselves in a traced region (the
+model validates at its public methods), data-dependent branches run masked. Its shapes are
+static (``dynamic=False``: a filter's modes and batch do not change) and it uses Inductor's
+Python wrapper, which compiles this large graph faster. The mode solves stay eager: compiled,
+the backward of their LU solves runs as triangular solves on full systems, slower than eager.
 
 What it costs:
 

@@ -245,8 +245,8 @@ class SpatialContactModel(ContactModelFields):
         resolve_slots: a mode fixes the state of each slot group; its slots and sliding
             directions are resolved at the linearization point (see the class docstring).
             :meth:`from_rollout` then merges the modes with the same group states.
-        compiled: run the linearization's contact assembly and its mode steps in the tangent
-            through :func:`torch.compile` (two graphs and their backward; see
+        compiled: run the linearization's contact assembly through :func:`torch.compile`
+            (one graph and its backward; see
             ``torchcontact.filters._compiled``): the first step compiles (minutes on a CPU
             for the BarrettHand scene; cached on disk for later processes), later steps take
             a fraction of the eager time; the results agree with the eager ones to rounding.
@@ -517,10 +517,9 @@ class SpatialContactModel(ContactModelFields):
         mode (``c`` its offsets); None: each mode's in its own (``c = 0``). The contact
         problems are assembled once per point (they do not depend on the mode) and reduced
         to the slots that some mode activates (the others are separated in every mode and
-        carry no impulse: the same steps). With :attr:`compiled`, the two differentiated
-        parts, the assembly of the replicas (:func:`_replica_problems`) and their steps in
-        the tangent (:func:`_tangent_steps`), run as compiled graphs and their derivative as
-        their compiled backward; the mode solves at ``x`` between them run eagerly.
+        carry no impulse: the same steps). With :attr:`compiled`, the assembly of the
+        replicas (:func:`_replica_problems`) runs as a compiled graph and its derivative as
+        its compiled backward; the mode solves run eagerly.
         """
         P, K, D = x.shape[0], self.num_modes, TANGENT_DIM
         slots = self._acting_slots.to(x.device)
@@ -582,7 +581,10 @@ class SpatialContactModel(ContactModelFields):
         else:
             chart = f.gather(1, chart_mode.to(x.device)[:, None, None].expand(P, K, STATE_DIM))
         with torch.enable_grad():
-            local = kernel(_tangent_steps, **options)(
+            # Eager: compiled, its backward through the Tikhonov iterations' LU solves runs as
+            # triangular solves on every replica's full system, slower than eager with many
+            # modes (BarrettHand, K = 16: 133 ms per backward against ~40 ms eager).
+            local = _tangent_steps(
                 self, moved, fields, problem.phi, modes, chart, solution.pn, solution.pt
             )
             (F,) = torch.autograd.grad(local.diagonal(dim1=-2, dim2=-1).sum(), delta)
@@ -915,7 +917,7 @@ def _tangent_steps(
     """``local(chart, f_k(retract(x, δ)))`` ``(P, K, 12, 12)``: every mode's step from the
     replicas, in the tangent at the chart, the mode solves warm-started at the converged
     impulses at ``x`` (see the class docstring): the second differentiated part of
-    :meth:`SpatialContactModel._linearize`.
+    :meth:`SpatialContactModel._linearize` (eager in both modes).
 
     Args:
         model: the model (its scene).
@@ -935,7 +937,6 @@ def _tangent_steps(
         _with_phi(problem_d, problem_d.phi + closing),
         modes.unsqueeze(2).expand(P, K, D, -1),
         initial_impulses=start,
-        sync_free=torch.compiler.is_compiling(),
     ).v_next
     stepped = model._advance(moved, v_next)  # (P, K, 12, 13)
     return SE3.local(chart.unsqueeze(2).expand_as(stepped), stepped)
