@@ -12,9 +12,9 @@ N = 1,000). Two variants are stepped in lockstep on the same trial, so that the 
 load falls on both alike:
 
 * ``eager``: ``SpatialContactModel(compiled=False)``, ``RBPF(compiled=False)``;
-* ``compiled``: ``SpatialContactModel(compiled=True)`` (the linearization as one
-  :func:`torch.compile` graph and its backward) and ``RBPF(compiled=True)`` (the particles'
-  Kalman kernels). Its first steps compile (minutes on a CPU; Inductor caches the code on
+* ``compiled``: ``SpatialContactModel(compiled=True)`` (the linearization's contact assembly
+  as a :func:`torch.compile` graph and its backward) and ``RBPF(compiled=True)`` (the
+  particles' Kalman kernels). Its first steps compile (minutes on a CPU; Inductor caches the code on
   disk, so a later process compiles in seconds to a minute): reported apart, as ``compile_s``.
 
 Per step, the CPU time of this thread (``time.thread_time``) of ``RBPF.step`` and, apart, of
