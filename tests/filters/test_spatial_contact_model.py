@@ -735,3 +735,59 @@ def test_no_consistent_mode_leaves_the_solved_ones_to_the_evidence() -> None:
     assert (weight == expected).all()  # 0 and ±inf are exact
     finite = gate_log_weight(consistent, penalty=5.0, dtype=DT, converged=converged)
     assert (finite == torch.tensor([[-5.0, -inf, -5.0], [0.0, -5.0, -inf]], dtype=DT)).all()
+
+
+@pytest.mark.slow  # compiles the BarrettHand's assembly: minutes on a CPU
+def test_compiled_linearization_matches_finite_differences_and_the_eager_one() -> None:
+    """``compiled=True`` (the contact assembly of the tangent replicas as a compiled graph
+    and its compiled backward) on the BarrettHand finger closing on a tilted box: the
+    Jacobians against finite differences as for the eager model, and the steps, Jacobians and
+    gate against the eager model's. The compiled kernels sum in another order: the problems'
+    fields agree to rounding (1e-15 relative), which the mode solves amplify by their
+    regularised condition (~1e6, the Tikhonov shift √eps of the diagonal): 1e-9 of the
+    largest entry."""
+    scene = hand_scene(height=0.224)
+    turn = quat_exp(torch.tensor([0.15, 0.1, 0.2], dtype=DT))
+    x = torch.cat([torch.tensor([0.0, 0.0, 0.1], dtype=DT), turn, torch.zeros(6, dtype=DT)])
+    q_robot = torch.tensor([0.0, 1.64, 0.0, 0.0], dtype=DT)
+    v_robot = torch.tensor([0.0, 0.5, 0.0, 0.0], dtype=DT)
+    outer = next(
+        g.start
+        for g in scene.robot_slot_groups
+        if scene.robots[0].robot.collision_shapes[g.shape].link == "bhand_f1_outer"
+    )
+    up = torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=DT)
+    modes = torch.zeros(3, scene.num_slots, dtype=torch.long)
+    modes[0, outer] = 1
+    for slot in (outer, outer + 1):
+        modes[1, slot] = sliding_along(scene, x, slot, up, q_robot=q_robot[None])
+    modes[2, outer : outer + 2] = 1  # contradicts itself: not solved
+    control = RobotControl(q_robot=q_robot, v_robot=v_robot)
+    # No gap closed: the linearization is that of step() (see assert_jacobian_matches).
+    compiled = model_of(scene, modes, compiled=True, consistency_gap=0.0)
+    eager = model_of(scene, modes, consistency_gap=0.0)
+    F, f, converged = compiled.linearize(x, control=control)
+    F_eager, f_eager, converged_eager = eager.linearize(x, control=control)
+    assert (converged == converged_eager).all()  # bools: exact
+    assert converged.tolist() == [True, True, False]
+    for k in range(2):  # the tolerance of assert_jacobian_matches
+        expected = finite_difference_jacobian(eager, x, k, control)
+        scale = float(expected.abs().max())
+        torch.testing.assert_close(F[k], expected, rtol=0.0, atol=1e-7 * scale)
+    torch.testing.assert_close(F, F_eager, rtol=0.0, atol=1e-9 * float(F_eager.abs().max()))
+    torch.testing.assert_close(f, f_eager, rtol=0.0, atol=1e-12)
+    belief = RBPF(eager, 8, proposal="all_modes").init(Gaussian(x, 1e-6 * torch.eye(12, dtype=DT)))
+    dynamics = compiled.mode_dynamics(belief, control)
+    reference = eager.mode_dynamics(belief, control)
+    assert (dynamics.mode_log_weight == reference.mode_log_weight).all()  # 0 or -inf: exact
+    for name in ("F", "c", "chart"):
+        value, expected = getattr(dynamics, name), getattr(reference, name)
+        scale = max(float(expected.abs().max()), 1.0)
+        torch.testing.assert_close(value, expected, rtol=0.0, atol=1e-9 * scale)
+
+
+def test_compiled_must_be_a_bool() -> None:
+    scene = finger_scene()
+    modes = torch.zeros(1, scene.num_slots, dtype=torch.long)
+    with pytest.raises(ValueError, match="compiled"):
+        model_of(scene, modes, compiled=1)

@@ -204,7 +204,10 @@ class ContactProblem:
         }
         # The longest batch shape is usually every field's (or theirs broadcast from nothing):
         # the general broadcast, a Python function, only where it is not.
-        batch = max(shapes.values(), key=len)
+        batch = torch.Size()
+        for shape in shapes.values():  # the first longest (a loop: torch.compile traces it)
+            if len(shape) > len(batch):
+                batch = shape
         if any(shape and shape != batch for shape in shapes.values()):
             batch = torch.broadcast_shapes(*shapes.values())
         problem = object.__new__(cls)

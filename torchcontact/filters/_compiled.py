@@ -8,6 +8,15 @@ elementwise chains into a few generated C++ loops, which removes most of that co
 batched LAPACK calls of the linearization stay library calls. The code that calls the loops
 and allocates their buffers is generated in C++ as well (Inductor's ``cpp_wrapper``).
 
+The spatial contact model's linearization (:class:`~torchcontact.filters.SpatialContactModel`
+with ``compiled=True``) compiles the contact assembly of its tangent replicas (a robot's
+forward kinematics, every slot's geometry) as one graph; AOTAutograd compiles its backward.
+It has no host synchronisation inside: the checks skip themselves in a traced region (the
+model validates at its public methods), data-dependent branches run masked. Its shapes are
+static (``dynamic=False``: a filter's modes and batch do not change) and it uses Inductor's
+Python wrapper, which compiles this large graph faster. The mode solves stay eager: compiled,
+the backward of their LU solves runs as triangular solves on full systems, slower than eager.
+
 What it costs:
 
 * the first call of a kernel compiles it: tens of seconds on a CPU (a C++ compiler must be on
@@ -42,13 +51,13 @@ RECOMPILE_LIMIT = 64
 
 
 @functools.cache
-def _compile(fn: Callable[..., Any]) -> Callable[..., Any]:
+def _compile(fn: Callable[..., Any], cpp_wrapper: bool, dynamic: bool | None) -> Callable[..., Any]:
     config = torch._dynamo.config
     config.recompile_limit = max(config.recompile_limit, RECOMPILE_LIMIT)
     # The C++ wrapper calls the generated kernels and library functions from C++ instead of
-    # a generated Python function: ~0.2 ms less per call of the contact linearization (its
-    # compilation takes about 1.7 times as long).
-    compiled = torch.compile(fn, dynamic=None, options={"cpp_wrapper": True})
+    # a generated Python function: ~0.2 ms less per call of the planar contact linearization
+    # (its compilation takes about 1.7 times as long).
+    compiled = torch.compile(fn, dynamic=dynamic, options={"cpp_wrapper": cpp_wrapper})
 
     @functools.wraps(fn)
     def call(*args: Any, **kwargs: Any) -> Any:
@@ -72,6 +81,11 @@ def _fresh(value: Any) -> Any:
     return value
 
 
-def kernel(fn: _Kernel, *, compiled: bool) -> _Kernel:
-    """``fn`` itself, or its compiled form if ``compiled`` (one per process)."""
-    return cast(_Kernel, _compile(fn)) if compiled else fn
+def kernel(
+    fn: _Kernel, *, compiled: bool, cpp_wrapper: bool = True, dynamic: bool | None = None
+) -> _Kernel:
+    """``fn`` itself, or its compiled form if ``compiled`` (one per process and options:
+    ``cpp_wrapper``, Inductor's C++ wrapper or its Python wrapper, which compiles faster;
+    ``dynamic``, :func:`torch.compile`'s: None compiles a second shape with dynamic sizes,
+    False every shape anew)."""
+    return cast(_Kernel, _compile(fn, cpp_wrapper, dynamic)) if compiled else fn

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -25,6 +26,7 @@ from torchcontact.contact import (
     solve_mode_unchecked,
     update_mode,
 )
+from torchcontact.filters._compiled import kernel
 from torchcontact.filters._contact_model import ContactModelFields, rollout_modes
 from torchcontact.filters._manifold import SE3, Manifold
 from torchcontact.filters._mode_gate import check_gate, gate_log_weight
@@ -34,6 +36,8 @@ from torchcontact.geometry import SlotGeometry, quat_to_matrix
 from torchcontact.sim import Rollout, Scene, SceneState, contact_problem, integrate_poses
 from torchcontact.states import ContactSet, PartnerKind, TactileArray
 
+#: Scenes assembled eagerly in this process (see ``SpatialContactModel._linearize``).
+_ASSEMBLED: weakref.WeakSet[Scene] = weakref.WeakSet()
 STATE_DIM = 13  # position, quaternion (w, x, y, z), linear and angular velocity
 TANGENT_DIM = 12  # (δp, δθ, δv, δω)
 OBS_DIM = 7  # the camera's pose: position and quaternion
@@ -241,6 +245,11 @@ class SpatialContactModel(ContactModelFields):
         resolve_slots: a mode fixes the state of each slot group; its slots and sliding
             directions are resolved at the linearization point (see the class docstring).
             :meth:`from_rollout` then merges the modes with the same group states.
+        compiled: run the linearization's contact assembly through :func:`torch.compile`
+            (one graph and its backward; see
+            ``torchcontact.filters._compiled``): the first step compiles (minutes on a CPU
+            for the BarrettHand scene; cached on disk for later processes), later steps take
+            a fraction of the eager time; the results agree with the eager ones to rounding.
 
     Construction validates every field and raises ``ValueError`` naming the field at fault.
     """
@@ -256,9 +265,12 @@ class SpatialContactModel(ContactModelFields):
     consistency_tolerance: float = 0.05
     consistency_gap: float = 0.003
     resolve_slots: bool = False
+    compiled: bool = False
 
     def __post_init__(self) -> None:
         scene = self.scene
+        if not isinstance(self.compiled, bool):
+            raise ValueError(f"compiled: expected a bool, got {self.compiled!r}")
         if not isinstance(scene, Scene) or scene.dimension != 3:
             raise ValueError(f"scene: expected a spatial Scene, got {describe(scene)}")
         if len(scene.dynamic) != 1:
@@ -505,22 +517,42 @@ class SpatialContactModel(ContactModelFields):
         mode (``c`` its offsets); None: each mode's in its own (``c = 0``). The contact
         problems are assembled once per point (they do not depend on the mode) and reduced
         to the slots that some mode activates (the others are separated in every mode and
-        carry no impulse: the same steps).
+        carry no impulse: the same steps). With :attr:`compiled`, the assembly of the
+        replicas (:func:`_replica_problems`) runs as a compiled graph and its derivative as
+        its compiled backward; the mode solves run eagerly.
         """
         P, K, D = x.shape[0], self.num_modes, TANGENT_DIM
         slots = self._acting_slots.to(x.device)
         modes = self.modes.to(x.device).index_select(1, slots).expand(P, K, -1)
+        # Static shapes (a filter's K and batch do not change), the Python wrapper (the C++
+        # one takes about 1.7 times as long to compile).
+        options: dict[str, Any] = {"compiled": self.compiled, "cpp_wrapper": False}
+        options["dynamic"] = False
+        if self.compiled and self.scene not in _ASSEMBLED:
+            # One eager assembly reads the scene's bodies into the simulator's cached layout,
+            # so that the compiled graph finds it (building it there would split the graph).
+            with torch.no_grad():
+                robot_contact_problem(self.scene, x, control)
+            _ASSEMBLED.add(self.scene)
         # One assembly: a batch of P·K·12 points retract(x, δ), δ = 0 requiring grad, whose
         # values are the problems at x (in every mode) and whose derivatives along δ are
         # taken by reverse-mode differentiation (faster here than forward mode): replica
         # (p, k, i) yields row i of mode k's Jacobian at point p.
         with torch.enable_grad():
             delta = x.new_zeros(P, K, D, D).requires_grad_()
-            moved = SE3.retract(x[:, None, None, :].expand(P, K, D, STATE_DIM), delta)
-            assembled, _ = robot_contact_problem(
-                self.scene, moved.reshape(-1, STATE_DIM), control.expand(K * D)
+            moved, fields = kernel(_replica_problems, **options)(
+                self.scene,
+                x,
+                delta,
+                slots,
+                q_robot=control.q_robot,
+                v_robot=control.v_robot,
+                robot_base=control.robot_base,
+                base_twist=control.base_twist,
+                q_kinematic=control.q_kinematic,
+                v_kinematic=control.v_kinematic,
             )
-            problem_d = _select_slots(assembled, slots).reshape(P, K, D)
+            problem_d = ContactProblem.unchecked(h=self.scene.h, **fields)
         with torch.no_grad():
             # (P, K) at x with the gaps of each mode's contacts closed: the step and the check
             at_x = problem_d.map_tensors(lambda t: t[:, :, 0].detach())  # (P, K)
@@ -547,22 +579,14 @@ class SpatialContactModel(ContactModelFields):
         if chart_mode is None:
             chart = f
         else:
-            chart = f.gather(1, chart_mode.to(x.device)[:, None, None].expand(P, 1, STATE_DIM))
-        # The mode solves warm-started at the converged impulses (see the class docstring).
-        start = (
-            solution.pn.unsqueeze(2).expand(P, K, D, -1),
-            solution.pt.unsqueeze(2).expand(P, K, D, *solution.pt.shape[-2:]),
-        )
+            chart = f.gather(1, chart_mode.to(x.device)[:, None, None].expand(P, K, STATE_DIM))
         with torch.enable_grad():
-            # the replicas' gaps shifted by the closing at x (held: no derivative)
-            closing = (problem.phi - problem_d.phi[:, :, 0].detach()).unsqueeze(2)
-            v_next = solve_mode_unchecked(
-                _with_phi(problem_d, problem_d.phi + closing),
-                modes.unsqueeze(2).expand(P, K, D, -1),
-                initial_impulses=start,
-            ).v_next
-            stepped = self._advance(moved, v_next)  # (P, K, 12, 13)
-            local = SE3.local(chart.unsqueeze(2).expand_as(stepped), stepped)
+            # Eager: compiled, its backward through the Tikhonov iterations' LU solves runs as
+            # triangular solves on every replica's full system, slower than eager with many
+            # modes (BarrettHand, K = 16: 133 ms per backward against ~40 ms eager).
+            local = _tangent_steps(
+                self, moved, fields, problem.phi, modes, chart, solution.pn, solution.pt
+            )
             (F,) = torch.autograd.grad(local.diagonal(dim1=-2, dim2=-1).sum(), delta)
         c = local.detach()[:, :, 0]
         # Placeholders where the mode is ruled out (its weight is -inf): finite, harmless.
@@ -852,6 +876,70 @@ def _replaced(problem: ContactProblem, *, phi: Tensor, mu: Tensor) -> ContactPro
         bn=problem.b_normal,
         bt=problem.b_tangent,
     )
+
+
+def _replica_problems(
+    scene: Scene, x: Tensor, delta: Tensor, slots: Tensor, **control: Tensor | None
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """The points ``retract(x, δ)`` ``(P, K, 12, 13)`` and the fields of their contact
+    problems on the acting ``slots``, batch ``(P, K, 12)`` (``ContactProblem.unchecked``'s
+    keywords): the first differentiated part of :meth:`SpatialContactModel._linearize`.
+
+    Args:
+        scene: the model's scene.
+        x: ``(P, 13)`` the linearization points.
+        delta: ``(P, K, 12, 12)`` tangent displacements (zeros that require grad).
+        slots: ``(S_a,)`` long, the acting slots.
+        **control: the fields of :class:`_Control`, flat batch ``(P, ...)``.
+    """
+    P, K, D = delta.shape[:3]
+    moved = SE3.retract(x[:, None, None, :].expand(P, K, D, STATE_DIM), delta)
+    assembled, _ = robot_contact_problem(
+        scene,
+        moved.reshape(-1, STATE_DIM),
+        _Control(**control).expand(K * D),  # type: ignore[arg-type]  # the fields
+    )
+    problem = _select_slots(assembled, slots).reshape(P, K, D)
+    names = ("M", "v", "f", "Jn", "Jt", "phi", "mu", "mask", "bn", "bt")
+    return moved, {name: getattr(problem, name) for name in names}
+
+
+def _tangent_steps(
+    model: SpatialContactModel,
+    moved: Tensor,
+    fields: dict[str, Tensor],
+    closed_phi: Tensor,
+    modes: Tensor,
+    chart: Tensor,
+    pn: Tensor,
+    pt: Tensor,
+) -> Tensor:
+    """``local(chart, f_k(retract(x, δ)))`` ``(P, K, 12, 12)``: every mode's step from the
+    replicas, in the tangent at the chart, the mode solves warm-started at the converged
+    impulses at ``x`` (see the class docstring): the second differentiated part of
+    :meth:`SpatialContactModel._linearize` (eager in both modes).
+
+    Args:
+        model: the model (its scene).
+        moved: ``(P, K, 12, 13)`` the replicas' points.
+        fields: their problems' fields (:func:`_replica_problems`).
+        closed_phi: ``(P, K, S_a)`` the gaps at ``x`` with the mode's contacts closed (the
+            replicas' gaps are shifted by the closing at ``x``, held: no derivative).
+        modes: ``(P, K, S_a)`` long, the modes on the acting slots.
+        chart: ``(P, K, 13)`` each mode's chart.
+        pn: ``(P, K, S_a)``, ``pt (P, K, S_a, D)`` the converged impulses at ``x``.
+    """
+    P, K, D = moved.shape[:3]
+    problem_d = ContactProblem.unchecked(h=model.scene.h, **fields)
+    closing = (closed_phi - problem_d.phi[:, :, 0].detach()).unsqueeze(2)
+    start = (pn.unsqueeze(2).expand(P, K, D, -1), pt.unsqueeze(2).expand(P, K, D, *pt.shape[-2:]))
+    v_next = solve_mode_unchecked(
+        _with_phi(problem_d, problem_d.phi + closing),
+        modes.unsqueeze(2).expand(P, K, D, -1),
+        initial_impulses=start,
+    ).v_next
+    stepped = model._advance(moved, v_next)  # (P, K, 12, 13)
+    return SE3.local(chart.unsqueeze(2).expand_as(stepped), stepped)
 
 
 def _check_state(x: object) -> None:

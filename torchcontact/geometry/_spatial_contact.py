@@ -785,12 +785,17 @@ def _box_box(
     # Separated boxes within the margin (beyond it no slot is a candidate, the distance being
     # at least the separation): the exact closest pair, one slot, on an edge axis or where the
     # face manifold does not reach it (its gaps are never less than the distance). Only those
-    # pairs are computed (a host synchronization).
+    # pairs are computed (a host synchronization), or, inside a region that torch.compile
+    # traces, every pair, kept where near (fixed shapes, no synchronization).
     near = (least < -tolerance) & (least >= -margin)
-    if not bool(near.any()):
+    traced = torch.compiler.is_compiling()
+    if not traced and not bool(near.any()):
         return points, normals, gaps, valid
     shape = gaps.shape
-    rows = near.reshape(-1).nonzero().squeeze(-1)
+    if traced:
+        rows = torch.arange(near.numel(), device=near.device)
+    else:
+        rows = near.reshape(-1).nonzero().squeeze(-1)
 
     def pick(value: Tensor) -> Tensor:
         return value.reshape(-1, *value.shape[len(shape) - 1 :]).index_select(0, rows)
@@ -805,6 +810,8 @@ def _box_box(
     reached = torch.where(near_valid, near_gaps, torch.inf).amin(-1, keepdim=True)
     reached = reached <= distance + pick(tol.expand(*shape[:-1], 1))
     exact = pick(is_edge).unsqueeze(-1) | ~reached  # (N, 1)
+    if traced:
+        exact = exact & pick(near).unsqueeze(-1)
     direction = _safe_divide(point_a - point_b, distance, 0.0)
     first = torch.arange(8, device=gaps.device) == 0
     replaced = (

@@ -100,8 +100,9 @@ class SceneLayout:
     servo_columns: tuple[int | None, ...]
 
 
-_LAYOUTS: weakref.WeakKeyDictionary[Scene, dict[tuple[torch.dtype, torch.device], SceneLayout]]
-_LAYOUTS = weakref.WeakKeyDictionary()
+# By the scene's id, each entry dropped when its scene is collected (a plain dict, which
+# torch.compile traces: a weak-keyed one splits the compiled graph at every lookup).
+_LAYOUTS: dict[int, dict[tuple[torch.dtype, torch.device], SceneLayout]] = {}
 
 
 def scene_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> SceneLayout:
@@ -111,7 +112,10 @@ def scene_layout(scene: Scene, dtype: torch.dtype, device: torch.device) -> Scen
     friction coefficients given as tensors that require grad are not cached but read at every
     step, so that gradients reach them.
     """
-    layouts = _LAYOUTS.setdefault(scene, {})
+    layouts = _LAYOUTS.get(id(scene))
+    if layouts is None:
+        layouts = _LAYOUTS[id(scene)] = {}
+        weakref.finalize(scene, _LAYOUTS.pop, id(scene), None)
     key = (dtype, device)
     if key not in layouts:
         layouts[key] = _build_layout(scene, dtype, device)
