@@ -207,8 +207,7 @@ class SpatialContactModel(ContactModelFields):
     Modes ruled out. A mode whose equalities contradict each other at :math:`\bar x` (its
     ``solve_mode`` does not converge and its answer does not solve the contact problem
     within :data:`SOLVED_RESIDUAL` of its scales, as the simulator's retry rule: a grasp's
-    redundant rows
-    stall the equality residual above the solver's tolerance while the impulses are
+    redundant rows stall the equality residual above the solver's tolerance while the impulses are
     consistent and solve the problem) gets the log-weight :math:`-\infty` for the step
     (``ModeDynamics.mode_log_weight``; its ``F`` and ``c`` are placeholders, the identity
     and the chart's origin). A mode that converges but contradicts itself (a separated slot
@@ -613,26 +612,18 @@ class SpatialContactModel(ContactModelFields):
         """The slots and sliding directions of group-state ``modes (P, K, S_a)`` resolved
         at ``problem`` (on the acting ``slots``), and ``(P, K)`` bool, every touching group
         has a slot within the gap (see the class docstring)."""
-        groups = self._slot_groups.to(modes.device).index_select(0, slots)  # (S_a,)
+        groups = slot_group_ids(self.scene).to(modes.device).index_select(0, slots)  # (S_a,)
         near = problem.phi <= self.consistency_gap
         touching = modes >= 1
         resolved = torch.where(touching & near, modes, SEPARATED)
-        G = int(self._slot_groups.max()) + 1
-        per_group = torch.zeros(*modes.shape[:-1], G, dtype=torch.long, device=modes.device)
-        index = groups.expand_as(modes)
-        wanted = per_group.scatter_reduce(-1, index, touching.long(), "amax") > 0
-        found = per_group.scatter_reduce(-1, index, (touching & near).long(), "amax") > 0
+        wanted = _group_max(touching.long(), groups) > 0
+        found = _group_max((touching & near).long(), groups) > 0
         reachable = (found | ~wanted).all(-1)
         # one round: the slots that would pull separate
         closed = self._closed_gaps(problem, resolved)
         corrected = update_mode(closed, solve_mode_unchecked(closed, resolved))
         resolved = torch.where((resolved >= 1) & (corrected == SEPARATED), SEPARATED, resolved)
         return _resolved_sliding(self._closed_gaps(problem, resolved), resolved), reachable
-
-    @property
-    def _slot_groups(self) -> Tensor:
-        """``(S,)`` long: each slot's group (the scene's slot groups, then its robots')."""
-        return slot_group_ids(self.scene)
 
     def _advance(self, x: Tensor, v_next: Tensor) -> Tensor:
         """``(*P, 13)``: the pose integrated over the step with the twist ``v_next (*P, 6)``
@@ -801,11 +792,15 @@ def group_states(scene: Scene, modes: Tensor) -> Tensor:
         ``(..., S)`` long.
     """
     ids = slot_group_ids(scene).to(modes.device)
-    state = modes.clamp(max=SLIDING)
-    G = int(ids.max()) + 1 if ids.numel() else 0
-    per_group = torch.zeros(*modes.shape[:-1], G, dtype=modes.dtype, device=modes.device)
-    per_group = per_group.scatter_reduce(-1, ids.expand_as(state), state, "amax")
-    return per_group.index_select(-1, ids)
+    return _group_max(modes.clamp(max=SLIDING), ids).index_select(-1, ids)
+
+
+def _group_max(values: Tensor, groups: Tensor) -> Tensor:
+    """``(..., G)`` the largest of ``values (..., S)`` (non-negative integers) over each
+    group's slots, ``groups (S,)`` their group ids (0 for a group without slots here)."""
+    G = int(groups.max()) + 1 if groups.numel() else 0
+    per_group = values.new_zeros(*values.shape[:-1], G)
+    return per_group.scatter_reduce(-1, groups.expand_as(values), values, "amax")
 
 
 def _resolved_sliding(problem: ContactProblem, modes: Tensor) -> Tensor:
