@@ -190,12 +190,11 @@ def test_jacobian_of_a_box_pushed_by_a_finger() -> None:
     assert_jacobian_matches(model_of(scene, modes), x, control)
 
 
-def test_jacobian_of_a_barrett_finger_closing_on_a_box() -> None:
-    """Finger 1's outer link, closing at 0.5 rad/s (the joint velocity enters through the
-    problem's known velocity terms), touches a tilted box held in the air at two points of
-    its capsule: sticking at one, sliding at both, and free flight. Sticking at both
-    contradicts the gaps' closing (the box would have to follow the link rigidly and close
-    both gaps): its solve does not converge."""
+def finger_on_a_tilted_box() -> tuple[Scene, Tensor, Tensor, Tensor, Tensor, int]:
+    """Finger 1's outer link closing at 0.5 rad/s on a tilted box held in the air: the scene,
+    the state, the joint angles and velocities, three modes (the link's first slot sticking,
+    both its slots sliding against the box's upward slip, nothing touching) and the link's
+    first slot."""
     scene = hand_scene(height=0.224)
     turn = quat_exp(torch.tensor([0.15, 0.1, 0.2], dtype=DT))
     x = torch.cat([torch.tensor([0.0, 0.0, 0.1], dtype=DT), turn, torch.zeros(6, dtype=DT)])
@@ -206,12 +205,21 @@ def test_jacobian_of_a_barrett_finger_closing_on_a_box() -> None:
         for g in scene.robot_slot_groups
         if scene.robots[0].robot.collision_shapes[g.shape].link == "bhand_f1_outer"
     )
-    inputs = {"q_robot": q_robot[None]}
     up = torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=DT)
     modes = torch.zeros(3, scene.num_slots, dtype=torch.long)
     modes[0, outer] = 1
     for slot in (outer, outer + 1):
-        modes[1, slot] = sliding_along(scene, x, slot, up, **dict(inputs))
+        modes[1, slot] = sliding_along(scene, x, slot, up, q_robot=q_robot[None])
+    return scene, x, q_robot, v_robot, modes, outer
+
+
+def test_jacobian_of_a_barrett_finger_closing_on_a_box() -> None:
+    """Finger 1's outer link, closing at 0.5 rad/s (the joint velocity enters through the
+    problem's known velocity terms), touches a tilted box held in the air at two points of
+    its capsule: sticking at one, sliding at both, and free flight. Sticking at both
+    contradicts the gaps' closing (the box would have to follow the link rigidly and close
+    both gaps): its solve does not converge."""
+    scene, x, q_robot, v_robot, modes, outer = finger_on_a_tilted_box()
     control = RobotControl(q_robot=q_robot, v_robot=v_robot)
     assert_jacobian_matches(model_of(scene, modes), x, control)
     both = modes[:1].clone()
@@ -746,21 +754,7 @@ def test_compiled_linearization_matches_finite_differences_and_the_eager_one() -
     fields agree to rounding (1e-15 relative), which the mode solves amplify by their
     regularised condition (~1e6, the Tikhonov shift √eps of the diagonal): 1e-9 of the
     largest entry."""
-    scene = hand_scene(height=0.224)
-    turn = quat_exp(torch.tensor([0.15, 0.1, 0.2], dtype=DT))
-    x = torch.cat([torch.tensor([0.0, 0.0, 0.1], dtype=DT), turn, torch.zeros(6, dtype=DT)])
-    q_robot = torch.tensor([0.0, 1.64, 0.0, 0.0], dtype=DT)
-    v_robot = torch.tensor([0.0, 0.5, 0.0, 0.0], dtype=DT)
-    outer = next(
-        g.start
-        for g in scene.robot_slot_groups
-        if scene.robots[0].robot.collision_shapes[g.shape].link == "bhand_f1_outer"
-    )
-    up = torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=DT)
-    modes = torch.zeros(3, scene.num_slots, dtype=torch.long)
-    modes[0, outer] = 1
-    for slot in (outer, outer + 1):
-        modes[1, slot] = sliding_along(scene, x, slot, up, q_robot=q_robot[None])
+    scene, x, q_robot, v_robot, modes, outer = finger_on_a_tilted_box()
     modes[2, outer : outer + 2] = 1  # contradicts itself: not solved
     control = RobotControl(q_robot=q_robot, v_robot=v_robot)
     # No gap closed: the linearization is that of step() (see assert_jacobian_matches).
