@@ -428,9 +428,10 @@ def test_tactile_likelihood_is_normalized_and_reads_the_palm() -> None:
     assert float(log_exact[1, 1]) == 0.0
 
 
-def test_self_contradicting_mode_is_ruled_out() -> None:
-    """The box sticking to the table and to a ball that moves: the equalities contradict
-    each other, solve_mode does not converge, and the mode's log-weight is -inf."""
+def box_stuck_to_a_moving_ball() -> tuple[Scene, Tensor, RobotControl, Tensor, Tensor]:
+    """The box resting on the table and a ball moving along +x against its side: the
+    scene, the state, the control, a mode sticking the box to the table and to the ball
+    (its equalities contradict each other) and the mode resting on the table alone."""
     scene = finger_scene()
     x = state((0.0, 0.0, HALF[2]))
     ball = torch.tensor([[-HALF[0] - 0.01, 0.0, 0.01, 1.0, 0.0, 0.0, 0.0]], dtype=DT)
@@ -451,6 +452,13 @@ def test_self_contradicting_mode_is_ruled_out() -> None:
     stuck[finger_slots] = 1
     resting = torch.zeros_like(stuck)
     resting[:4] = 1
+    return scene, x, control, stuck, resting
+
+
+def test_self_contradicting_mode_is_ruled_out() -> None:
+    """The box sticking to the table and to a ball that moves: the equalities contradict
+    each other, solve_mode does not converge, and the mode's log-weight is -inf."""
+    scene, x, control, stuck, resting = box_stuck_to_a_moving_ball()
     model = model_of(scene, torch.stack([stuck, resting]))
     _, _, converged = model.linearize(x, control=control)
     assert converged.tolist() == [False, True]
@@ -459,6 +467,25 @@ def test_self_contradicting_mode_is_ruled_out() -> None:
     assert weights is not None
     assert float(weights[0]) == -math.inf
     assert math.isfinite(float(weights[1]))
+
+
+def test_a_point_no_mode_explains_holds_its_state() -> None:
+    """The same box with only the self-contradicting mode in the table and the inconsistent
+    modes ruled out: no mode's step is trusted, so the point holds its state for the step
+    (the identity Jacobian, the state itself as the step, log-weight 0) rather than losing
+    every mode; with a finite penalty the mode stays ruled out."""
+    scene, x, control, stuck, _ = box_stuck_to_a_moving_ball()
+    model = model_of(scene, stuck[None], inconsistency_penalty=math.inf)
+    F, f, converged = model.linearize(x, control=control)
+    assert converged.tolist() == [True]
+    assert (F[0] == torch.eye(12, dtype=DT)).all()  # the held step is copied, not computed
+    assert (f[0] == x).all()
+    belief = RBPF(model, 1).init(Gaussian(x, 1e-6 * torch.eye(12, dtype=DT)))
+    weights = model.mode_dynamics(belief, control).mode_log_weight
+    assert weights is not None
+    assert float(weights[0]) == 0.0
+    penalised = dataclasses.replace(model, inconsistency_penalty=5.0)
+    assert penalised.linearize(x, control=control)[2].tolist() == [False]
 
 
 @pytest.mark.parametrize(
@@ -621,7 +648,7 @@ def test_projection_sets_a_box_on_the_table_its_mode_touches() -> None:
     touching[0, :4] = 1  # mode 0: the bottom corners stick; mode 1: nothing touches
     model = model_of(scene, touching)
     height, p, sigma = 0.005, 1e-4, 1e-3
-    x = state((0.01, -0.02, HALF[2] + height), (0.1, 0.0, 0.0, 0.0, 0.0, 0.2))
+    x = state((0.01, -0.02, HALF[2] + height))  # at rest: the twist's rows read zero
     belief = RBPF(model, 2).init(Gaussian(x, p * torch.eye(12, dtype=DT)))
     belief = dataclasses.replace(belief, modes=torch.tensor([0, 1]))
     zeros = torch.zeros(4, dtype=DT)
@@ -640,6 +667,37 @@ def test_projection_sets_a_box_on_the_table_its_mode_touches() -> None:
         project_out_of_contact(
             belief, scene, gap_sigma=sigma, control=control, mode_table=touching[:, :3]
         )
+
+
+def test_projection_stops_the_twist_its_mode_forbids() -> None:
+    """A box resting on the table with a twist (v, ω) and a diagonal covariance: in a mode
+    whose four bottom corners stick, the projection brings the twist to zero (the only twist
+    under which four corners on a plane neither move nor slip); in one where they slide, only
+    the normal rates are constrained (vz + (ω × r)_z = 0 at four corners: vz = ωx = ωy = 0)
+    and, the covariance being diagonal, vx, vy and ωz stay. Tolerances: with pseudo-measurement
+    std s = σ/h = 1e-6 m/s, prior variance p = 0.01 and lever arms r of a few centimetres, a
+    constrained component keeps about |ω| s² / (p r²) ≈ 3e-8 of its value."""
+    scene = hand_scene(height=1.0)
+    modes = torch.zeros(2, scene.num_slots, dtype=torch.long)
+    modes[0, :4] = 1  # sticking
+    modes[1, :4] = 2  # sliding (along the first friction direction)
+    model = model_of(scene, modes)
+    twist = (0.1, -0.05, 0.02, 0.3, -0.2, 0.4)
+    x = state((0.0, 0.0, HALF[2]), twist)
+    belief = RBPF(model, 2).init(Gaussian(x, 0.01 * torch.eye(12, dtype=DT)))
+    belief = dataclasses.replace(belief, modes=torch.tensor([0, 1]))
+    zeros = torch.zeros(4, dtype=DT)
+    control = RobotControl(q_robot=zeros, v_robot=zeros)
+    sigma = 1e-6 * scene.h
+    projected = project_out_of_contact(
+        belief, scene, gap_sigma=sigma, control=control, mode_table=modes
+    )
+    mean = projected.gaussians.mean
+    torch.testing.assert_close(mean[0, 7:], torch.zeros(6, dtype=DT), rtol=0.0, atol=1e-6)
+    kept = torch.tensor(twist, dtype=DT)[[0, 1, 5]]
+    torch.testing.assert_close(mean[1, [7, 8, 12]], kept, rtol=0.0, atol=1e-12)
+    torch.testing.assert_close(mean[1, [9, 10, 11]], torch.zeros(3, dtype=DT), rtol=0.0, atol=1e-6)
+    torch.testing.assert_close(mean[:, :7], x[:7].expand(2, 7), rtol=0.0, atol=1e-12)
 
 
 def test_gaps_within_the_tolerance_are_closed() -> None:

@@ -63,7 +63,12 @@ def project_out_of_contact(
     particle's Gaussian is also projected onto the contacts its mode closes: the slots
     in contact in its mode (sticking or sliding, code ``>= 1``) get the same pseudo-measurement
     whatever the sign of their gap, so a particle in a mode that sets the box on the table is
-    set on the table (the mode is a contact state; its gaps are zero).
+    set on the table (the mode is a contact state; its gaps are zero), and its twist is
+    projected onto the mode's velocity constraints: the gap rates :math:`J_n v + b_n` of
+    those slots and the slips :math:`J_t v + b_t` of its sticking ones are pseudo-measured
+    zero with std :math:`\sigma / h` (the same softness over one step). Without that, a
+    twist that no measurement sees while the camera is occluded keeps whatever the steps
+    of other modes left in it, and a grasp's stiff modes amplify it.
 
     Args:
         belief: an RBPF belief, batch ``(*B,)`` with ``N`` particles whose state begins with
@@ -147,6 +152,8 @@ def _project_spatial(
     problem, geometry = robot_contact_problem(scene, flat, ctrl.expand(N))
     phi, Jn = geometry.phi, problem.Jn[..., :6]  # (P, S) unclamped gaps, (P, S, 6)
     constrained = geometry.active & (phi < 0)  # penetrated
+    closed = torch.zeros_like(constrained)
+    sticking = torch.zeros_like(constrained)
     if mode_table is not None:
         K, S = belief.num_modes, scene.num_slots
         if (
@@ -157,24 +164,48 @@ def _project_spatial(
             raise ValueError(
                 f"mode_table: expected a long ({K}, {S}) tensor, got {describe(mode_table)}"
             )
-        closed = mode_table.to(phi.device)[belief.modes.reshape(-1)] >= 1  # (P, S)
-        constrained = constrained | (geometry.active & closed)
+        slot_modes = mode_table.to(phi.device)[belief.modes.reshape(-1)]  # (P, S)
+        closed = geometry.active & (slot_modes >= 1)
+        sticking = geometry.active & (slot_modes == 1)
+        constrained = constrained | closed
     slots = constrained.any(0).nonzero().squeeze(-1)
     if slots.numel() == 0:
         return belief
-    m = int(slots.numel())
+    # Rows: the gaps of the constrained slots (pose), then the gap rates of the closed slots
+    # and the slips of the sticking ones along the first D/2 directions (twist; the other
+    # half are their opposites).
+    half = problem.num_directions // 2
     rotation = quat_to_matrix(flat[:, 3:7])  # (P, 3, 3): body to world
-    rows = Jn[:, slots]
-    H = flat.new_zeros(P, m, TANGENT_DIM)
-    H[..., :3] = rows[..., :3]
-    H[..., 3:6] = rows[..., 3:] @ rotation  # ∂φ/∂δθ = (r × n)ᵀ R
-    d = phi[:, slots]
-    R = flat.new_full((m,), gap_sigma**2).diag()
+    gap_rows = flat.new_zeros(P, slots.numel(), TANGENT_DIM)
+    gap_rows[..., :3] = Jn[:, slots, :3]
+    gap_rows[..., 3:6] = Jn[:, slots, 3:] @ rotation  # ∂φ/∂δθ = (r × n)ᵀ R
+    twist = flat[:, 7:13, None]
+    Jt = problem.Jt[:, slots, :half, :6]  # (P, m, D/2, 6)
+    bn = phi.new_zeros(phi.shape) if problem.bn is None else problem.bn
+    bt = Jt.new_zeros(Jt.shape[:-1]) if problem.bt is None else problem.bt[:, slots, :half]
+    rate_rows = flat.new_zeros(P, slots.numel(), 1 + half, TANGENT_DIM)
+    rate_rows[..., 0, 6:] = Jn[:, slots]
+    rate_rows[..., 1:, 6:] = Jt
+    rates = (rate_rows[..., 6:] @ twist[:, None]).squeeze(-1)  # (P, m, 1 + D/2)
+    rates = rates + torch.cat([bn[:, slots, None], bt], -1)
+    rate_mask = torch.cat(
+        [closed[:, slots, None], sticking[:, slots, None].expand(-1, -1, half)], -1
+    )
+    H = torch.cat([gap_rows, rate_rows.flatten(1, 2)], 1)
+    d = torch.cat([phi[:, slots], rates.flatten(1)], 1)
+    mask = torch.cat([constrained[:, slots], rate_mask.flatten(1)], 1)
+    m = H.shape[1]
+    sigma = torch.cat(
+        [
+            flat.new_full((slots.numel(),), gap_sigma),
+            flat.new_full((m - slots.numel(),), gap_sigma / scene.h),
+        ]
+    )
     tangent = unchecked_gaussian(
         flat.new_zeros(P, TANGENT_DIM), g.cov.reshape(P, TANGENT_DIM, TANGENT_DIM)
     )
     projected, _ = kf_update(
-        tangent, flat.new_zeros(P, m), H=H, d=d, R=R, mask=constrained[:, slots]
+        tangent, flat.new_zeros(P, m), H=H, d=d, R=sigma.pow(2).diag(), mask=mask
     )
     mean = SE3.retract(flat, projected.mean)
     gaussians = unchecked_gaussian(mean.reshape(g.mean.shape), projected.cov.reshape(g.cov.shape))

@@ -215,7 +215,11 @@ class SpatialContactModel(ContactModelFields):
     gets ``-inconsistency_penalty``, judged by :func:`~torchcontact.contact.is_consistent`
     with the relative tolerance ``consistency_tolerance`` after closing the gaps of the mode's
     contacts up to ``consistency_gap``, as :class:`~torchcontact.filters.PlanarContactModel`
-    does (the shared gate).
+    does (the shared gate). With ``inconsistency_penalty = inf``, a point at which no solved
+    mode passes even a ten times looser check holds its state for the step (every mode the
+    identity, log-weight 0): the step of a mode that contradicts itself extrapolates its
+    Jacobian, which a nearly singular mode system (fingers pressing from both sides) makes
+    arbitrarily large, and the mixture's spread would carry its particles away.
 
     Measurements. The camera measures the pose, :math:`y = \mathrm{retract}(p, q;\ n)`,
     :math:`n \sim N(0, R)` in the 6-dim tangent (``y`` is ``(7,)``, NaN where occluded);
@@ -556,7 +560,7 @@ class SpatialContactModel(ContactModelFields):
             # (P, K) at x with the gaps of each mode's contacts closed: the step and the check
             at_x = problem_d.map_tensors(lambda t: t[:, :, 0].detach())  # (P, K)
             reachable = torch.ones(P, K, dtype=torch.bool, device=x.device)
-            if self.resolve_slots:
+            if self.resolve_slots and slots.numel() > 0:
                 modes, reachable = self._resolved(at_x, modes, slots)
             problem = self._closed_gaps(at_x, modes)
             solution = solve_mode_unchecked(problem, modes)
@@ -588,15 +592,27 @@ class SpatialContactModel(ContactModelFields):
             )
             (F,) = torch.autograd.grad(local.diagonal(dim1=-2, dim2=-1).sum(), delta)
         c = local.detach()[:, :, 0]
-        # Placeholders where the mode is ruled out (its weight is -inf): finite, harmless.
+        # With the inconsistent modes ruled out, a point none of whose solved modes passes even
+        # the loose check holds its state for the step: every mode the identity (the step of a
+        # mode that contradicts itself there extrapolates its Jacobian, which a near-singular
+        # system makes arbitrarily large).
+        stranded = ~(converged & nearly).any(-1, keepdim=True)  # (P, 1)
+        stranded = stranded & math.isinf(self.inconsistency_penalty)
+        kept = converged & ~stranded
+        # Placeholders where the mode is ruled out (its weight is -inf) or the point holds.
         eye = torch.eye(D, dtype=x.dtype, device=x.device)
         F = torch.where(
-            converged[..., None, None] & F.isfinite().all(-1).all(-1)[..., None, None], F, eye
+            kept[..., None, None] & F.isfinite().all(-1).all(-1)[..., None, None], F, eye
         )
-        c = torch.where(converged[..., None] & c.isfinite().all(-1, keepdim=True), c, 0.0)
-        f = torch.where(converged[..., None], f, x.unsqueeze(1))
+        c = torch.where(kept[..., None] & c.isfinite().all(-1, keepdim=True), c, 0.0)
+        f = torch.where(kept[..., None], f, x.unsqueeze(1))
         return _Linearization(
-            F=F, f=f, c=c, converged=converged, consistent=consistent, nearly=nearly
+            F=F,
+            f=f,
+            c=c,
+            converged=converged | stranded,
+            consistent=consistent,
+            nearly=nearly | stranded,
         )
 
     def _closed_gaps(self, problem: ContactProblem, modes: Tensor) -> ContactProblem:
