@@ -6,11 +6,13 @@ import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import KW_ONLY, dataclass
+from typing import get_args
 
 import torch
 from torch import Tensor
 
 from torchcontact._checks import check_batched, check_float, check_int, check_tensor
+from torchcontact.contact import Method
 from torchcontact.filters._contact_model import KinematicControl
 from torchcontact.filters._gaussian import Gaussian, check_gaussian
 from torchcontact.filters._manifold import SE3
@@ -128,6 +130,10 @@ class SimulatorParticleFilter:
         measurement_std: ``(3,)`` std ``σ_y`` of the pose measurement, ``> 0``; spatial
             ``(6,)``, of position and rotation vector.
         resampling: the resampling scheme.
+        fallback: the simulator's exact solvers for the particles whose guessed modes fail
+            (:attr:`Simulator.fallback <torchcontact.sim.Simulator.fallback>`): dropping the
+            QP fallback, slow on a grasp's redundant rows, bounds the cost of a step; the
+            particles that Lemke leaves unsolved then get weight zero.
 
     References:
         N. J. Gordon, D. J. Salmond and A. F. M. Smith, "Novel approach to nonlinear/non-Gaussian
@@ -140,6 +146,7 @@ class SimulatorParticleFilter:
     process_std: Tensor
     measurement_std: Tensor
     resampling: ResamplingMethod = "systematic"
+    fallback: tuple[Method, ...] = ("lemke", "qp")
 
     def __post_init__(self) -> None:
         if not isinstance(self.scene, Scene) or len(self.scene.dynamic) != 1:
@@ -158,6 +165,11 @@ class SimulatorParticleFilter:
                 raise ValueError(f"{name}: expected a ({size},) tensor >= 0, got {value}")
         if bool((self.measurement_std == 0).any()):
             raise ValueError(f"measurement_std: expected > 0, got {self.measurement_std}")
+        methods = get_args(Method)
+        if not isinstance(self.fallback, tuple) or not all(m in methods for m in self.fallback):
+            raise ValueError(
+                f"fallback: expected a tuple of methods among {methods}, got {self.fallback!r}"
+            )
         if self.resampling not in RESAMPLING_METHODS:
             raise ValueError(
                 f"resampling: expected one of {RESAMPLING_METHODS}, got {self.resampling!r}"
@@ -238,7 +250,7 @@ class SimulatorParticleFilter:
             index = resample(belief.log_weights, method=self.resampling, generator=generator)
             x = torch.gather(x, -2, index[..., None].expand(*batch, N, x.shape[-1]))
             mode = torch.gather(mode, -2, index[..., None].expand(*batch, N, mode.shape[-1]))
-        simulator = Simulator(self.scene)
+        simulator = Simulator(self.scene, fallback=self.fallback)
         if spatial:
             state, result = self._simulate_spatial(simulator, x, mode, control, like)
         else:

@@ -13,7 +13,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from torchcontact._checks import FLOAT_DTYPES, describe
+from torchcontact._checks import FLOAT_DTYPES, check_real, describe
 from torchcontact.contact import (
     SEPARATED,
     SLIDING,
@@ -114,6 +114,8 @@ class _Linearization:
         converged: ``(P, K)`` bool, the mode's equalities were solved at ``x̄``.
         consistent: ``(P, K)`` bool, the gate's verdict (True where it is off).
         nearly: ``(P, K)`` bool, the verdict with ten times the tolerance.
+        held: ``(P, 1)`` bool, the point holds its state for the step (no mode usable; every
+            mode's ``F``, ``f`` and ``c`` are the identity's).
     """
 
     F: Tensor
@@ -122,6 +124,7 @@ class _Linearization:
     converged: Tensor
     consistent: Tensor
     nearly: Tensor
+    held: Tensor
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
@@ -215,11 +218,17 @@ class SpatialContactModel(ContactModelFields):
     gets ``-inconsistency_penalty``, judged by :func:`~torchcontact.contact.is_consistent`
     with the relative tolerance ``consistency_tolerance`` after closing the gaps of the mode's
     contacts up to ``consistency_gap``, as :class:`~torchcontact.filters.PlanarContactModel`
-    does (the shared gate). With ``inconsistency_penalty = inf``, a point at which no solved
-    mode passes even a ten times looser check holds its state for the step (every mode the
-    identity, log-weight 0): the step of a mode that contradicts itself extrapolates its
-    Jacobian, which a nearly singular mode system (fingers pressing from both sides) makes
-    arbitrarily large, and the mixture's spread would carry its particles away.
+    does (the shared gate). A mode whose Jacobian has an entry above ``max_gain`` (default
+    1e6; a legitimate step amplifies a gap over a lever arm r by about 1 / (h r), 1e4 at
+    h = 10 ms and r = 1 cm) counts as not solved: its system is singular at the point (a
+    sliding contact whose friction split between two directions is set at zero slip, rows
+    that change rank), so its derivative is not that of any nearby step and a particle a
+    millimetre from the mean would be carried at hundreds of metres per second.
+    A point at which no mode is solved (with ``inconsistency_penalty = inf``: none that
+    passes even a ten times looser consistency check) holds its state for the step (every
+    mode the identity, log-weight 0) rather than losing every mode: the step of a mode that
+    contradicts itself extrapolates its Jacobian, and the mixture's spread would carry its
+    particles away.
 
     Measurements. The camera measures the pose, :math:`y = \mathrm{retract}(p, q;\ n)`,
     :math:`n \sim N(0, R)` in the 6-dim tangent (``y`` is ``(7,)``, NaN where occluded);
@@ -248,6 +257,9 @@ class SpatialContactModel(ContactModelFields):
         resolve_slots: a mode fixes the state of each slot group; its slots and sliding
             directions are resolved at the linearization point (see the class docstring).
             :meth:`from_rollout` then merges the modes with the same group states.
+        max_gain: the largest entry of a mode's tangent Jacobian that is taken as a step;
+            a mode whose Jacobian exceeds it at the linearization point counts as not solved
+            there (see the class docstring). ``inf`` disables the check.
         compiled: run the linearization's contact assembly through :func:`torch.compile`
             (one graph and its backward; see
             ``torchcontact.filters._compiled``): the first step compiles (minutes on a CPU
@@ -268,10 +280,13 @@ class SpatialContactModel(ContactModelFields):
     consistency_tolerance: float = 0.05
     consistency_gap: float = 0.003
     resolve_slots: bool = False
+    max_gain: float = 1e6
     compiled: bool = False
 
     def __post_init__(self) -> None:
         scene = self.scene
+        if self.max_gain != math.inf:  # inf disables the check
+            check_real("max_gain", self.max_gain, low=0.0, low_open=True)
         if not isinstance(self.compiled, bool):
             raise ValueError(f"compiled: expected a bool, got {self.compiled!r}")
         if not isinstance(scene, Scene) or scene.dimension != 3:
@@ -445,7 +460,7 @@ class SpatialContactModel(ContactModelFields):
             dtype=dtype,
             converged=lin.converged,
             nearly=lin.nearly,
-        )
+        ).masked_fill(lin.held, 0.0)
         noise = self._noise
         return ModeDynamics(
             F=lin.F.to(dtype).reshape(*batch, K, TANGENT_DIM, TANGENT_DIM),
@@ -592,12 +607,14 @@ class SpatialContactModel(ContactModelFields):
             )
             (F,) = torch.autograd.grad(local.diagonal(dim1=-2, dim2=-1).sum(), delta)
         c = local.detach()[:, :, 0]
-        # With the inconsistent modes ruled out, a point none of whose solved modes passes even
-        # the loose check holds its state for the step: every mode the identity (the step of a
-        # mode that contradicts itself there extrapolates its Jacobian, which a near-singular
-        # system makes arbitrarily large).
-        stranded = ~(converged & nearly).any(-1, keepdim=True)  # (P, 1)
-        stranded = stranded & math.isinf(self.inconsistency_penalty)
+        # A mode whose derivative is singular at the point is not solved there.
+        converged = converged & (F.abs().amax((-2, -1)) <= self.max_gain)
+        # A point with no solved mode (with the inconsistent modes ruled out: none that passes
+        # even the loose check) holds its state for the step: every mode the identity. The
+        # step of a mode that contradicts itself extrapolates its Jacobian, which a nearly
+        # singular system makes arbitrarily large.
+        usable = converged & nearly if math.isinf(self.inconsistency_penalty) else converged
+        stranded = ~usable.any(-1, keepdim=True)  # (P, 1)
         kept = converged & ~stranded
         # Placeholders where the mode is ruled out (its weight is -inf) or the point holds.
         eye = torch.eye(D, dtype=x.dtype, device=x.device)
@@ -607,12 +624,7 @@ class SpatialContactModel(ContactModelFields):
         c = torch.where(kept[..., None] & c.isfinite().all(-1, keepdim=True), c, 0.0)
         f = torch.where(kept[..., None], f, x.unsqueeze(1))
         return _Linearization(
-            F=F,
-            f=f,
-            c=c,
-            converged=converged | stranded,
-            consistent=consistent,
-            nearly=nearly | stranded,
+            F=F, f=f, c=c, converged=converged, consistent=consistent, nearly=nearly, held=stranded
         )
 
     def _closed_gaps(self, problem: ContactProblem, modes: Tensor) -> ContactProblem:
