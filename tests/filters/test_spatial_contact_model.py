@@ -147,6 +147,22 @@ def test_jacobian_of_a_box_resting_on_redundant_corners() -> None:
     assert_jacobian_matches(model_of(scene, modes), x, control)
 
 
+def test_a_mode_whose_gain_exceeds_max_gain_is_not_solved() -> None:
+    """The box at rest on four sticking corners: its Jacobian's largest entry is the gap
+    term 1/h = 100 (a gap δφ closes at δφ/h in one step). With ``max_gain`` just below it
+    the mode counts as not solved, just above it as solved; the free flight (entries of
+    order one and h) is solved either way."""
+    scene = hand_scene(height=0.4)
+    control = RobotControl(q_robot=torch.zeros(4, dtype=DT), v_robot=torch.zeros(4, dtype=DT))
+    x = state((0.0, 0.0, HALF[2]))
+    mode = simulated_mode(scene, x, q_robot=control.q_robot[None])
+    modes = torch.stack([mode, torch.zeros_like(mode)])
+    gain = 1.0 / scene.h
+    for max_gain, expected in ((0.99 * gain, [False, True]), (1.01 * gain, [True, True])):
+        model = model_of(scene, modes, consistency_gap=0.0, max_gain=max_gain)
+        assert model.linearize(x, control=control)[2].tolist() == expected
+
+
 def sliding_along(scene: Scene, x: Tensor, slot: int, twist: Tensor, **inputs: Tensor) -> int:
     """The sliding mode code ``2 + d`` of ``slot`` whose friction impulse (direction ``d``)
     opposes the slip of a body moving with ``twist`` (``d`` minimizes ``Jt_d · twist``)."""
@@ -496,6 +512,7 @@ def test_a_point_no_mode_explains_holds_its_state() -> None:
         ({"R": -torch.eye(6, dtype=DT)}, "R"),
         ({"transition": torch.ones(1, 1, dtype=DT) * 2}, "transition"),
         ({"inconsistency_penalty": -1.0}, "inconsistency_penalty"),
+        ({"max_gain": 0.0}, "max_gain"),
         ({"tactile": {"no_such_link": None}}, "tactile"),
         ({"scene": "table"}, "scene"),
     ],
