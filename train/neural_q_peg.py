@@ -43,6 +43,12 @@ few rounds on validation episodes; the best (the untrained network, i.e. QMDP, i
 kept. Finally the settings are compared on the same fresh episodes (oracle, raw on the
 standard camera, QMDP, press-then-QMDP and the touch-and-shift probe on the occluded variant,
 neural; seeded by ``--final-seed``, so runs of other training seeds can share them).
+``--belief physics`` (or ``both``) runs the final QMDP and neural rows on the contact
+physics' belief model (:class:`~torchcontact.envs.PegPhysicsModel`, built as ``dyna_q_peg``
+builds it; the features, with the class marginals summed over its modes, mean the same);
+``--final-settings`` picks the rows (``raw`` on the occluded variant holds the last camera
+pose in the gripper). A finished run resumed with other values of these, ``--final-episodes``,
+``--final-seed`` or ``--mode-episodes`` only evaluates again.
 Writes TensorBoard logs, checkpoints, ``network.pt`` and ``results.md`` to a new run folder,
 ``runs/neural_q_peg__<seed>__<unix time>``; a killed run continues where its last checkpoint
 left it, to the same result, with ``--resume <that folder>`` (the same arguments; ``--rounds``
@@ -52,6 +58,7 @@ may grow).
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 from typing import Any
 
@@ -65,12 +72,14 @@ from torchcontact.envs import (
     PegInHoleBeliefModel,
     PegInHoleFilter,
     PegInHoleTask,
+    PegPhysicsModel,
 )
 from torchcontact.experiments import (
     CHECKPOINT,
     NUM_BELIEF_FEATURES,
     PRESS,
     PROBE_THRESHOLD,
+    SETTINGS,
     PotentialShaping,
     QLookup,
     RunLog,
@@ -90,7 +99,9 @@ from torchcontact.experiments import (
     read_checkpoint,
     results_table,
     round_seed,
+    run_round,
     save_checkpoint,
+    scalar_metrics,
     shift_actions,
 )
 from torchcontact.rl import (
@@ -105,6 +116,11 @@ from torchcontact.rl import (
 DTYPE = torch.float32
 #: The targets of ``--targets``.
 _TARGETS = ("td", "monte_carlo")
+#: The belief models of ``--belief``, by name.
+_BELIEFS = ("fitted", "physics", "both")
+#: Arguments used only by the final comparison: a finished run resumes with other values of
+#: these and only evaluates again.
+_EVALUATION = ("final_episodes", "final_seed", "belief", "mode_episodes", "final_settings")
 #: The checkpoint's entries besides ``"args"``.
 #: Index of the blind-camera flag among the compact features (see ``belief_features``).
 BLIND_FEATURE = NUM_BELIEF_FEATURES - 3
@@ -178,6 +194,16 @@ class Args:
     probe_threshold: float = PROBE_THRESHOLD
     """lateral spread of the belief above which probing presses, m (also the probe and shift
     settings of the final comparison)"""
+    belief: str = "fitted"
+    """the belief model of the final comparison's qmdp and neural rows: fitted, physics or
+    both (training and validation always run on the fitted one; the network's features are
+    the same under either)"""
+    mode_episodes: int = 64
+    """greedy episodes on the true state whose contact modes make the physics model's table
+    (as in dyna_q_peg: the same episodes for the same tabular run)"""
+    final_settings: tuple[str, ...] = ()
+    """the settings of the final comparison (empty: oracle, raw, qmdp, neural on a camera
+    that always sees; oracle, qmdp, probe, shift, neural on the occluded variant)"""
     press_penalty: float | None = None
     """with a value: the trust region measures advantages from the mean residual of the
     actions other than pressing ("-y"), weighs pressing's by this value and the others' by
@@ -199,6 +225,8 @@ class _Tabular:
     agent: DynaQ
     model: PegInHoleBeliefModel
     shaping: PotentialShaping
+    seed: int
+    """the tabular run's seed (its physics model's greedy episodes)"""
 
 
 def _load_tabular(args: Args) -> _Tabular:
@@ -221,7 +249,10 @@ def _load_tabular(args: Args) -> _Tabular:
     )
     model = dataclasses.replace(model, task=PegInHoleTask(config))
     return _Tabular(
-        DynaQ.from_state_dict(saved["agent"]), model, PotentialShaping(saved["args"]["shaping"])
+        DynaQ.from_state_dict(saved["agent"]),
+        model,
+        PotentialShaping(saved["args"]["shaping"]),
+        saved["args"]["seed"],
     )
 
 
@@ -235,7 +266,7 @@ def check_args(args: Args) -> _Tabular:
     check_name("name", args.name)
     for name in ("num_envs", "rounds", "hidden", "buffer_size", "batch_size"):
         check_int(name, getattr(args, name), low=1)
-    for name in ("eval_every", "eval_episodes", "final_episodes"):
+    for name in ("eval_every", "eval_episodes", "final_episodes", "mode_episodes"):
         check_int(name, getattr(args, name), low=1)
     for name in ("seed", "learning_starts", "fitted_iterations", "updates_per_iteration"):
         check_int(name, getattr(args, name), low=0)
@@ -254,6 +285,9 @@ def check_args(args: Args) -> _Tabular:
     if args.press_penalty is not None:
         check_real("press_penalty", args.press_penalty, low=0.0)
     check_choice("targets", args.targets, _TARGETS)
+    check_choice("belief", args.belief, _BELIEFS)
+    for setting in args.final_settings:
+        check_choice("final_settings", setting, SETTINGS)
     tabular = _load_tabular(args)
     K = tabular.model.num_modes
     check_int("particles", args.particles, low=K, why="the belief model's number of modes K")
@@ -301,7 +335,7 @@ def run(args: Args) -> dict[str, Any]:
     """
     tabular = check_args(args)
     torch.set_num_threads(1)
-    run_dir, saved = open_run(args, keys=_SAVED)
+    run_dir, saved = open_run(args, keys=_SAVED, free=_EVALUATION)
     agent, model = tabular.agent, tabular.model
     config = model.task.config
     lookup = QLookup(agent, model.task.states)
@@ -376,9 +410,13 @@ def run(args: Args) -> dict[str, Any]:
         )
     online.load_state_dict(best["state"])
     network = deployed_network(lookup.table, online)
-    settings: tuple[Setting, ...] = ("oracle", "qmdp", "probe", "shift", "neural")
-    if config.occlusion_radius == 0:  # the raw setting reads the camera's pose
-        settings = ("oracle", "raw", "qmdp", "neural")
+    settings = final_settings(args, config.occlusion_radius)
+    filters, physics = None, None
+    if args.belief != "fitted":
+        physics = _physics_model(args, tabular, model.task)
+        filters = {"physics": PegInHoleFilter(physics, num_particles=args.particles)}
+        if args.belief == "both":
+            filters = {"fitted": filt, **filters}
     evaluations = evaluate_settings(
         settings,
         num_episodes=args.final_episodes,
@@ -387,32 +425,66 @@ def run(args: Args) -> dict[str, Any]:
         seed=final_seed(args),
         filt=filt,
         network=network,
+        filters=filters,
         probe_threshold=args.probe_threshold,
     )
     for e in evaluations:
-        writer.add_scalar(
-            f"eval/final_{e.setting}_success", e.success_rate, counters["transitions"]
-        )
+        tag = e.setting.replace(" + ", "_")
+        writer.add_scalar(f"eval/final_{tag}_success", e.success_rate, counters["transitions"])
     log.close()
     torch.save(network.state_dict(), run_dir / "network.pt")
     for e in evaluations:
-        np.save(run_dir / f"successes_{e.setting}.npy", e.successes)
+        tag = e.setting.replace(" + ", "_")
+        np.save(run_dir / f"successes_{tag}.npy", e.successes)
+        np.save(run_dir / f"lengths_{tag}.npy", e.lengths)
     sigma = config.pose_noise_std
     text = (
         f"# Neural Q on the RBPF belief, peg-in-hole ({counters['transitions']} training "
         f"transitions; kept: {_kept(best['round'])})\n\n"
         f"Camera noise σ = {1e3 * sigma[0]:.1f} mm, {sigma[2]:.3f} rad, occlusion radius "
         f"{1e3 * config.occlusion_radius:.0f} mm; {args.particles} particles; tabular Q from "
-        f"{args.tabular_run} ({agent.num_states} states).\n\n"
+        f"{args.tabular_run} ({agent.num_states} states)"
+        + (f"; physics model: {physics.num_modes} contact modes" if physics else "")
+        + f"; {args.final_episodes} final episodes, seed {final_seed(args)}.\n\n"
         f"{results_table(evaluations)}\n"
     )
     (run_dir / "results.md").write_text(text)
-    return {
+    result = {
         "run_dir": str(run_dir),
         "history": history,
         "best_round": best["round"],
         "evaluations": {e.setting: e.success_rate for e in evaluations},
+        "execution": {e.setting: e.metrics() for e in evaluations},
     }
+    metrics = scalar_metrics(result)
+    (run_dir / "metrics.json").write_text(json.dumps(metrics, indent=1) + "\n")
+    return result
+
+
+def final_settings(args: Args, occlusion_radius: float) -> tuple[Setting, ...]:
+    """The final comparison's settings: ``--final-settings``, else the task's defaults."""
+    if args.final_settings:
+        return tuple(args.final_settings)  # type: ignore[arg-type]
+    if occlusion_radius == 0:
+        return ("oracle", "raw", "qmdp", "neural")
+    return ("oracle", "qmdp", "probe", "shift", "neural")
+
+
+def _physics_model(args: Args, tabular: _Tabular, task: PegInHoleTask) -> PegPhysicsModel:
+    """The physics belief model on this run's camera, as ``dyna_q_peg`` builds it: the contact
+    modes of ``--mode-episodes`` greedy episodes on the true state (seeded by the tabular run's
+    seed), the graph's class transition."""
+    true_state = dataclasses.replace(task.config, occlusion_radius=0.0)
+    greedy = run_round(
+        PegInHole2DVector(num_envs=args.mode_episodes, config=true_state),
+        tabular.agent,
+        seed=tabular.seed * 1_000_003 + 900_000,
+        shaping=tabular.shaping,
+        learn=False,
+    )
+    return PegPhysicsModel.fit(
+        greedy.slot_modes, greedy.transitions.next_classes, tabular.agent.graph, task=task
+    )
 
 
 def final_seed(args: Args) -> int:

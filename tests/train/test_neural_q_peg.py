@@ -182,7 +182,10 @@ def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
     b = torch.load(Path(resumed["run_dir"]) / "network.pt")
     assert a.keys() == b.keys()
     assert all(torch.equal(a[k], b[k]) for k in a)
-    refused = r"other arguments \(rounds may grow\): learning_rate: checkpoint 0\.001, now 0\.01$"
+    refused = (
+        r"other arguments \(rounds may grow; final_episodes, final_seed, belief, mode_episodes, "
+        r"final_settings may differ\): learning_rate: checkpoint 0\.001, now 0\.01$"
+    )
     with pytest.raises(ValueError, match=refused):
         module.run(
             _tiny(module, tmp_path, tabular_run, learning_rate=1e-2, resume=stopped["run_dir"])

@@ -140,6 +140,7 @@ from torchcontact.experiments._peg_execution import (
     evaluate,
     evaluate_settings,
     qmdp_actions,
+    raw_poses,
     results_table,
 )
 from torchcontact.experiments._peg_learning import (
@@ -307,6 +308,7 @@ __all__ = [
     "plot_tracking_errors",
     "probe_presses",
     "qmdp_actions",
+    "raw_poses",
     "read_checkpoint",
     "replay",
     "results_table",

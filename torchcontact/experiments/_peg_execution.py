@@ -33,6 +33,7 @@ from torchcontact.experiments._peg_probing import (
     shift_actions,
 )
 from torchcontact.experiments._q_lookup import QLookup
+from torchcontact.geometry import rotation_matrix
 from torchcontact.rl import QNetwork, greedy_action, qmdp_action
 
 #: The execution settings compared by :func:`evaluate`.
@@ -50,7 +51,10 @@ def belief_features(
     Features after the ``M`` state probabilities (:meth:`QLookup.probabilities`): the weighted
     mean of the peg's bottom centre relative to the hole and its angle (cm, cm, rad × 10),
     the log standard deviation of the pose (3), the entropy of the contact-class marginal,
-    the effective sample size over ``N``, the ``K = 24`` class marginals, then the latest
+    the effective sample size over ``N``, the ``K = 24`` contact-class marginals
+    (:meth:`~torchcontact.envs.PegInHoleFilter.class_marginals`: the fitted model's modes,
+    or the physics model's modes summed by class, so the features have the same meaning and
+    size under either belief model), then the latest
     observation's touch (part of the observation history the belief conditions on, which the
     fitted belief model reads only as a contact class): whether the camera is blind (its pose
     all NaN) and whether the left and the right half of the peg's bottom touch
@@ -69,9 +73,11 @@ def belief_features(
     relative = filt.model.task.states.relative_pose(filt.particle_poses(belief))  # (B, N, 3)
     mean = (weights.unsqueeze(-1) * relative).sum(1)
     spread = (weights.unsqueeze(-1) * (relative - mean.unsqueeze(1)) ** 2).sum(1)
+    # each particle's own covariance, in its model's state frame (the fitted model's: the
+    # gripper's; the physics model's: the world's; they differ by the gripper's small rotation)
     pose_variance = torch.diagonal(rbpf.gaussians.cov, dim1=-2, dim2=-1)[..., :3]
     variance = spread + (weights[..., None] * pose_variance).sum(1)
-    marginal = rbpf.mode_marginals()
+    marginal = filt.class_marginals(belief)
     entropy = -(marginal * torch.log(marginal.clamp(min=1e-300))).sum(-1, keepdim=True)
     ess = rbpf.ess().unsqueeze(-1) / filt.num_particles
     scale = torch.tensor([100.0, 100.0, 10.0], dtype=mean.dtype)
@@ -193,7 +199,9 @@ def evaluate(
     * ``"raw"``: greedy on the state of the raw observation: the camera's pose and the
       contact class that best explains the tactile readings
       (:meth:`~torchcontact.envs.PegInHoleBeliefModel.most_likely_classes` of ``filt``'s
-      model, a fitted one);
+      model, a fitted one); while the camera is blind, the pose it last saw carried with the
+      gripper (:func:`raw_poses`; before it first sees the peg, the model's
+      :attr:`~torchcontact.envs.PegInHoleBeliefModel.grasp_prior` mean);
     * ``"qmdp"``: QMDP over the particles of ``filt`` (:func:`qmdp_actions`);
     * ``"probe"``: probe, then insert: QMDP, except that while the camera is blind and the
       belief's lateral spread exceeds ``probe_threshold`` it presses the peg down until a
@@ -251,6 +259,9 @@ def evaluate(
     seconds, decisions = 0.0, 0
     log_prob, scored = 0.0, 0
     touched = torch.zeros(E, dtype=torch.bool)
+    held = torch.zeros(E, 3, dtype=torch.float64)  # "raw": the grasp while the camera is blind
+    if setting == "raw" and filt is not None and isinstance(filt.model, PegInHoleBeliefModel):
+        held = filt.model.grasp_prior.mean.expand(E, 3)  # before the camera first sees the peg
     while live.any():
         start = time.perf_counter()
         if setting == "oracle":
@@ -261,7 +272,8 @@ def evaluate(
             readings = torch.as_tensor(observation["tactile"]).bool()
             assert isinstance(filt.model, PegInHoleBeliefModel)
             classes = filt.model.most_likely_classes(readings)
-            raw_ids = states.ids(torch.as_tensor(observation["peg_pose"]), classes)
+            raw_pose, held = raw_poses(observation, held=held)
+            raw_ids = states.ids(raw_pose, classes)
             choice = greedy_action(lookup.values(raw_ids)[0], generator=generator)
         elif setting in ("qmdp", "probe", "shift"):
             assert belief is not None
@@ -321,6 +333,55 @@ def evaluate(
         seconds / max(decisions, 1),
         log_prob / scored if scored else math.nan,
     )
+
+
+def raw_poses(observation: Mapping[str, Any], *, held: Tensor) -> tuple[Tensor, Tensor]:
+    """The peg poses the raw observation gives, and the grasps to hold while the camera is blind.
+
+    Where the camera sees the peg, its pose as measured; where it is blind (the row all NaN,
+    :attr:`~torchcontact.envs.PegInHoleConfig.occlusion_radius`), the gripper's pose composed
+    with the grasp ``held``: the peg's pose in the gripper frame when the camera last saw it,
+    ``(u, w, φ) = (R(γ)ᵀ (p − g), θ − γ)`` for the camera's pose ``(p, θ)`` and the gripper's
+    ``(g, γ)``, world pose ``(g + R(γ) (u, w), γ + φ)``.
+
+    Args:
+        observation: a noisy observation, ``"peg_pose" (B, 3)`` (world frame, all NaN where
+            the camera is blind) and ``"gripper_pose" (B, 3)`` (world frame).
+        held: ``(B, 3)`` the grasps held so far (gripper frame; at the start, e.g. a
+            prior's mean).
+
+    Returns:
+        ``(B, 3)`` peg poses (world frame) and ``(B, 3)`` the grasps to hold from now on
+        (updated where the camera sees).
+
+    Raises:
+        ValueError: a pose row is neither finite nor all NaN, or the gripper pose is not finite.
+    """
+    camera = torch.as_tensor(np.asarray(observation["peg_pose"]), dtype=torch.float64)
+    gripper = torch.as_tensor(np.asarray(observation["gripper_pose"]), dtype=torch.float64)
+    seen = torch.isfinite(camera).all(-1)
+    if not bool((seen | torch.isnan(camera).all(-1)).all()):
+        raise ValueError("observation: peg_pose must be finite or all NaN per row")
+    if not bool(torch.isfinite(gripper).all()):
+        raise ValueError("observation: gripper_pose must be finite")
+    rotation = rotation_matrix(gripper[:, 2])  # (B, 2, 2), gripper to world
+    offset = torch.where(seen[:, None], camera[:, :2] - gripper[:, :2], 0.0)
+    grasp = torch.cat(
+        [
+            (rotation.transpose(-1, -2) @ offset.unsqueeze(-1)).squeeze(-1),
+            (torch.where(seen, camera[:, 2], 0.0) - gripper[:, 2]).unsqueeze(-1),
+        ],
+        -1,
+    )
+    held = torch.where(seen[:, None], grasp, held.to(torch.float64))
+    carried = torch.cat(
+        [
+            gripper[:, :2] + (rotation @ held[:, :2].unsqueeze(-1)).squeeze(-1),
+            (gripper[:, 2] + held[:, 2]).unsqueeze(-1),
+        ],
+        -1,
+    )
+    return torch.where(seen[:, None], camera, carried), held
 
 
 def _noisy(observation: object) -> Mapping[str, Any]:
