@@ -123,6 +123,48 @@ def test_compiled_boxes_follow_closed_form_physics() -> None:
     assert float((run.solver[1:] == SOLVED_BY_GUESS).double().mean()) > 0.9
 
 
+def test_compiled_box_pushed_by_a_kinematic_finger_slides_at_its_speed() -> None:
+    """One scene, unbatched, pushed at a constant speed u by a frictionless kinematic finger
+    (the ``control`` input of the kernel): the box ends up sliding at u; the ground's normal
+    impulse per step is m g h, the finger's the ground's friction μ m g h."""
+    scene = Scene(
+        bodies=(
+            Body("ground", HalfPlane.ground(), kind="static"),
+            Body("box", Polygon.box(1.0, 0.5), mass=MASS),
+            Body("finger", Polygon.box(0.1, 0.8), kind="kinematic"),
+        ),
+        friction=MU,
+        pair_friction={("box", "finger"): 0.0},
+        h=H,
+    )
+    sim = Simulator(scene, compiled=True)
+    speed = 0.4
+    state = sim.initial_state(
+        q=torch.tensor([[0.0, 0.25, 0.0]], dtype=F64),
+        q_kinematic=torch.tensor([[-0.56, 0.3, 0.0]], dtype=F64),
+    )
+    control = torch.tensor([[speed, 0.0, 0.0]], dtype=F64)
+    solver = []
+    with torch.no_grad():
+        for _ in range(60):
+            result = sim.step(state, control)
+            state = result.state
+            solver.append(int(result.solver))
+    torch.testing.assert_close(
+        state.v[0], torch.tensor([speed, 0.0, 0.0], dtype=F64), atol=1e-9, rtol=0
+    )
+    support, pushing = [
+        sum(result.pn[group.start : group.start + group.count].sum() for group in groups)
+        for groups in (
+            [g for g in scene.slot_groups if {g.receiver, g.other} == {0, 1}],
+            [g for g in scene.slot_groups if {g.receiver, g.other} == {1, 2}],
+        )
+    ]
+    assert float(support) == pytest.approx(MASS * G * H, rel=1e-9)
+    assert float(pushing) == pytest.approx(MU * MASS * G * H, rel=1e-9)
+    assert solver[-30:] == [SOLVED_BY_GUESS] * 30  # the compiled kernel carries the push
+
+
 @pytest.mark.slow  # compiles the step for several numbers of active slots: minutes on a CPU
 def test_compiled_box_rollouts_equal_eager(monkeypatch: pytest.MonkeyPatch) -> None:
     """Seeded rollouts of sliding, tipping and resting boxes; then a batch half of whose

@@ -599,7 +599,7 @@ class Simulator:
             phi=geometry.phi.reshape(*batch, K),
             active=geometry.active.reshape(*batch, K),
         )
-        solution = solution.map_tensors(lambda t: t.reshape(*batch, *t.shape[1:]))
+        solution = solution.map_tensors(lambda t: t.reshape((*batch, *t.shape[1:])))
         return solution, solver.reshape(batch), geometry
 
     def _step_compacted(
