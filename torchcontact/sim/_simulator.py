@@ -158,16 +158,16 @@ class Simulator:
             an accepted, unconverged retry.
         compiled: first try each step of a planar scene without robots as one
             :func:`torch.compile` kernel (see ``torchcontact._compiled``; the first step
-            compiles, tens of seconds): assemble the problem on all ``K`` slots (fixed shapes,
-            no compaction), solve it at the previous step's modes with ``solve_mode``, check
-            consistency and read the canonical modes, with no host synchronisation; then one
-            synchronisation: the entries that are consistent (``solver == 0``) are done, the
-            others take steps 1–5 as a batch of their own. The results equal those of
-            ``compiled=False`` to rounding. It pays where the step's cost is the dispatch of
-            small operations (small batches); on large batches the eager step's compaction to
-            the candidate slots does less arithmetic. Spatial scenes, scenes with robots and
-            steps that record gradients (an input, or a scene mass, inertia or friction, that
-            requires grad) run eagerly.
+            compiles, tens of seconds, and a second number of active slots once more, with
+            dynamic sizes): the slot geometry and the problem on all ``K`` slots, the mode
+            solve at the previous step's modes on the slots they activate (plus one separated
+            slot: systems no larger than the eager step's), the consistency check and the
+            canonical modes, with no host synchronisation; then one synchronisation: the
+            entries that are consistent (``solver == 0``) are done, the others take steps 1–5
+            as a batch of their own. The results equal those of ``compiled=False`` to
+            rounding. It pays where the step's cost is the dispatch of small operations (small
+            batches). Spatial scenes, scenes with robots and steps that record gradients (an
+            input, or a scene mass, inertia or friction, that requires grad) run eagerly.
     """
 
     scene: Scene
