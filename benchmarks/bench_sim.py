@@ -1,9 +1,11 @@
 """Simulator throughput: batched planar boxes vs MuJoCo stepping one box, in one run.
 
 Boxes on the ground (four corner slots each), a third sliding, a third tipping over a corner,
-a third resting, stepped ``T`` times at B = 1, 64 and 1,024 scenes, one thread, and the time of
-the contact problem's assembly alone (:func:`~torchcontact.sim.contact_problem`, every slot,
-best of several repetitions) at the same states. MuJoCo (the
+a third resting, stepped ``T`` times at B = 1, 64 and 1,024 scenes, one thread pinned to the
+quietest CPU (``_timing.pin_to_quietest_cpu``), eagerly and with ``Simulator(compiled=True)``
+(its compilation in the warm-up, not timed; the two rollouts alternate, best of 3 each), and the
+time of the contact problem's assembly alone (:func:`~torchcontact.sim.contact_problem`, every
+slot, best of several repetitions) at the same states. MuJoCo (the
 optional ``bench`` extra) steps one free box on a plane for the same number of steps; its
 steps per second on one core is the reference for the ratio. Prints a markdown table and writes
 ``benchmarks/results/bench_sim.json``.
@@ -21,6 +23,7 @@ import time
 from pathlib import Path
 
 import torch
+from _timing import pin_to_quietest_cpu  # benchmarks/ is on sys.path when run as a script
 
 from torchcontact.geometry import HalfPlane, Polygon
 from torchcontact.sim import (
@@ -62,15 +65,25 @@ def box_states(sim: Simulator, count: int) -> SceneState:
     return sim.initial_state(q=q.unsqueeze(1), v=v.unsqueeze(1))
 
 
-def time_torchcontact(sim: Simulator, count: int, steps: int) -> tuple[float, float]:
-    """Seconds for ``steps`` steps of ``count`` scenes, and the fast-path share."""
-    state = box_states(sim, count)
-    sim.rollout(state, steps=2)  # warm-up
-    start = time.perf_counter()
+def time_torchcontact(
+    sims: tuple[Simulator, ...], count: int, steps: int
+) -> tuple[list[float], float]:
+    """Seconds for ``steps`` steps of ``count`` scenes with each simulator (best of 3, the
+    simulators' rollouts alternating so that they share the machine's load), and the fast-path
+    share of the first."""
+    state = box_states(sims[0], count)
+    seconds = [float("inf")] * len(sims)
     with torch.no_grad():
-        run = sim.rollout(state, steps=steps)
-    seconds = time.perf_counter() - start
-    return seconds, float((run.solver == SOLVED_BY_GUESS).double().mean())
+        for sim in sims:
+            sim.rollout(state, steps=3)  # warm-up (a compiled step compiles at its second step)
+        for _ in range(3):
+            for i, sim in enumerate(sims):
+                start = time.perf_counter()
+                run = sim.rollout(state, steps=steps)
+                seconds[i] = min(seconds[i], time.perf_counter() - start)
+                if i == 0:
+                    fast = float((run.solver == SOLVED_BY_GUESS).double().mean())
+    return seconds, fast
 
 
 def time_assembly(sim: Simulator, count: int, repeats: int) -> float:
@@ -109,6 +122,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="small sizes, for smoke tests")
     args = parser.parse_args()
     torch.set_num_threads(1)
+    pinned = pin_to_quietest_cpu()
     scene = Scene(
         bodies=(
             Body("ground", HalfPlane.ground(), kind="static"),
@@ -118,6 +132,7 @@ def main() -> None:
         h=0.01,
     )
     sim = Simulator(scene)
+    compiled = Simulator(scene, compiled=True)
     sizes = (1, 64) if args.quick else (1, 64, 1024)
     steps = 20 if args.quick else 200
     mujoco_seconds = time_mujoco(20 * steps)
@@ -125,17 +140,23 @@ def main() -> None:
 
     rows = []
     for count in sizes:
-        seconds, fast = time_torchcontact(sim, count, steps)
+        (seconds, compiled_seconds), fast = time_torchcontact((sim, compiled), count, steps)
         assembly = time_assembly(sim, count, steps // 4)
         rate = count * steps / seconds
+        compiled_rate = count * steps / compiled_seconds
         rows.append(
             {
                 "B": count,
                 "box_steps_per_s": rate,
                 "ms_per_step": 1e3 * seconds / steps,
+                "compiled_box_steps_per_s": compiled_rate,
+                "compiled_ms_per_step": 1e3 * compiled_seconds / steps,
                 "assembly_ms": assembly,
                 "fast_path_share": fast,
                 "ratio_to_mujoco": None if mujoco_rate is None else rate / mujoco_rate,
+                "compiled_ratio_to_mujoco": (
+                    None if mujoco_rate is None else compiled_rate / mujoco_rate
+                ),
             }
         )
 
@@ -146,13 +167,19 @@ def main() -> None:
     else:
         print(f"MuJoCo one box on a plane: {mujoco_rate:,.0f} steps/s on one core")
     print()
-    print("| B | ms / step | assembly ms | box-steps / s | fast path | ratio to MuJoCo steps / s |")
-    print("|---:|---:|---:|---:|---:|---:|")
+    print(
+        "| B | ms / step | compiled ms / step | assembly ms | box-steps / s "
+        "| compiled box-steps / s | fast path | ratio to MuJoCo steps / s (compiled) |"
+    )
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|")
     for row in rows:
-        ratio = "n/a" if row["ratio_to_mujoco"] is None else f"{row['ratio_to_mujoco']:.2f}×"
+        ratio = "n/a"
+        if mujoco_rate is not None:
+            ratio = f"{row['ratio_to_mujoco']:.2f}× ({row['compiled_ratio_to_mujoco']:.2f}×)"
         print(
-            f"| {row['B']:,} | {row['ms_per_step']:.2f} | {row['assembly_ms']:.2f} "
-            f"| {row['box_steps_per_s']:,.0f} "
+            f"| {row['B']:,} | {row['ms_per_step']:.2f} | {row['compiled_ms_per_step']:.2f} "
+            f"| {row['assembly_ms']:.2f} | {row['box_steps_per_s']:,.0f} "
+            f"| {row['compiled_box_steps_per_s']:,.0f} "
             f"| {100 * row['fast_path_share']:.0f}% | {ratio} |"
         )
     if not args.quick:
@@ -161,6 +188,7 @@ def main() -> None:
             "machine": platform.platform(),
             "torch": torch.__version__,
             "threads": torch.get_num_threads(),
+            "pinned_cpu": pinned["pinned_cpu"],
             "steps": steps,
             "mujoco_steps_per_s": mujoco_rate,
             "rows": rows,

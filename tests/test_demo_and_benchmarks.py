@@ -52,6 +52,14 @@ def run_quick(script: str) -> str:
     return result.stdout
 
 
+@pytest.mark.slow  # compiles the simulator's step for two batch sizes: a minute on a CPU
+def test_simulator_benchmark_quick_mode_prints_eager_and_compiled_times() -> None:
+    stdout = run_quick("bench_sim.py")
+    rows = [line.split("|") for line in stdout.splitlines() if line.startswith(("| 1 |", "| 64 |"))]
+    assert len(rows) == 2
+    assert all(float(row[2]) > 0 and float(row[3]) > 0 for row in rows)  # ms / step, both
+
+
 def test_spatial_simulator_benchmark_quick_mode_prints_its_table() -> None:
     stdout = run_quick("bench_sim3d.py")
     rows = [line.split("|") for line in stdout.splitlines() if line.startswith(("| 1 |", "| 64 |"))]

@@ -17,18 +17,25 @@ from torchcontact._checks import (
     check_real,
     check_unit_rows,
 )
+from torchcontact._compiled import kernel
 from torchcontact.contact import (
+    SEPARATED,
     ContactProblem,
     Method,
     Solution,
+    SolveStatus,
+    consistent_with_mode,
     contact_mode,
+    default_tolerance,
     is_consistent,
+    lcp_residual,
     solve,
     solve_active_set,
     solve_mode,
+    solve_mode_unchecked,
 )
 from torchcontact.geometry import SlotGeometry
-from torchcontact.sim._assemble import assemble, robot_inputs, slot_state
+from torchcontact.sim._assemble import assemble, robot_inputs, scene_layout, slot_state
 from torchcontact.sim._rigid_body import integrate_poses
 from torchcontact.sim._scene import Scene
 from torchcontact.sim._state import SceneState
@@ -149,6 +156,18 @@ class Simulator:
         retry_sticking: retry from all-sticking modes after the first fallback solver.
         retry_residual: largest LCP residual (:func:`~torchcontact.contact.lcp_residual`) of
             an accepted, unconverged retry.
+        compiled: first try each step of a planar scene without robots as one
+            :func:`torch.compile` kernel (see ``torchcontact._compiled``; the first step
+            compiles, tens of seconds, and a second number of active slots once more, with
+            dynamic sizes): the slot geometry and the problem on all ``K`` slots, the mode
+            solve at the previous step's modes on the slots they activate (plus one separated
+            slot: systems no larger than the eager step's), the consistency check and the
+            canonical modes, with no host synchronisation; then one synchronisation: the
+            entries that are consistent (``solver == 0``) are done, the others take steps 1–5
+            as a batch of their own. The results equal those of ``compiled=False`` to
+            rounding. It pays where the step's cost is the dispatch of small operations (small
+            batches). Spatial scenes, scenes with robots and steps that record gradients (an
+            input, or a scene mass, inertia or friction, that requires grad) run eagerly.
     """
 
     scene: Scene
@@ -156,6 +175,7 @@ class Simulator:
     active_set_iterations: int = 4
     retry_sticking: bool = True
     retry_residual: float = 1e-6
+    compiled: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.scene, Scene):
@@ -169,6 +189,8 @@ class Simulator:
         if not isinstance(self.retry_sticking, bool):
             raise ValueError(f"retry_sticking must be a bool, got {self.retry_sticking!r}")
         check_real("retry_residual", self.retry_residual, low=0.0)
+        if not isinstance(self.compiled, bool):
+            raise ValueError(f"compiled must be a bool, got {self.compiled!r}")
 
     def initial_state(
         self,
@@ -320,9 +342,12 @@ class Simulator:
         ):
             if value is not None:
                 check_batched(name, value, shape=shape, like=state.q, like_name="q")
-        solution, solver, geometry = self._step_compacted(
-            state, control, force, friction, joint_command, base_twist
-        )
+        if self._compiled_step_applies(state, control, force, friction):
+            solution, solver, geometry = self._step_at_modes(state, control, force, friction)
+        else:
+            solution, solver, geometry = self._step_compacted(
+                state, control, force, friction, joint_command, base_twist
+            )
         h = self.scene.h
         body_dofs = num_dynamic * twist
         v_next = solution.v_next[..., :body_dofs].unflatten(-1, (num_dynamic, twist))
@@ -500,6 +525,83 @@ class Simulator:
             robot_base=state.robot_base.unsqueeze(0),  # type: ignore[union-attr]
         )
 
+    def _compiled_step_applies(
+        self,
+        state: SceneState,
+        control: Tensor | None,
+        force: Tensor | None,
+        friction: Tensor | None,
+    ) -> bool:
+        """Whether :meth:`_step_at_modes` takes this step (see ``compiled``)."""
+        scene = self.scene
+        if not self.compiled or scene.dimension != 2 or scene.robots or state.q.numel() == 0:
+            return False
+        layout = scene_layout(scene, state.q.dtype, state.q.device)
+        if layout.mass_matrix is None or layout.gravity_force is None or layout.mu is None:
+            return False  # masses or friction that require grad
+        inputs = (state.q, state.v, state.q_kinematic, control, force, friction)
+        return not (
+            torch.is_grad_enabled() and any(t is not None and t.requires_grad for t in inputs)
+        )
+
+    def _step_at_modes(
+        self,
+        state: SceneState,
+        control: Tensor | None,
+        force: Tensor | None,
+        friction: Tensor | None,
+    ) -> tuple[Solution, Tensor, SlotGeometry]:
+        """The compiled step at the previous modes, then :meth:`_step_compacted` for the
+        entries where it is not consistent; the returns of :meth:`_step_compacted`."""
+        batch, K = state.batch_shape, self.scene.num_slots
+        P = math.prod(batch)
+
+        def flat(t: Tensor) -> Tensor:
+            return t.reshape(P, *t.shape[len(batch) :])
+
+        q, v, q_kinematic, mode = map(flat, (state.q, state.v, state.q_kinematic, state.mode))
+        control, force, friction = (
+            None if t is None else flat(t) for t in (control, force, friction)
+        )
+        # The mode solve's slots: each entry's non-separated ones first, then separated ones,
+        # as many as the most non-separated slots of an entry plus one (a read of the modes,
+        # which are on the host before the step).
+        separated = mode == SEPARATED
+        width = min(K, int((~separated).sum(-1).max()) + 1)
+        solved = torch.argsort(separated.to(torch.uint8), dim=-1, stable=True)[:, :width]
+        # Nothing requires grad here: one compiled variant whatever the grad mode.
+        with torch.no_grad():
+            v_next, pn, pt, canonical, residual, good, geometry = kernel(
+                _step_at_modes, compiled=True
+            )(self.scene, q, v, q_kinematic, mode, solved, control, force, friction)
+        status = SolveStatus(
+            converged=good, residual=residual, iterations=torch.ones_like(mode[:, 0])
+        )
+        solution = Solution(v_next=v_next, pn=pn, pt=pt, mode=canonical, status=status)
+        solver = torch.full_like(mode[:, 0], SOLVED_BY_GUESS)
+        redo = torch.nonzero(~good).squeeze(-1)  # the one host synchronisation
+        if redo.numel():
+            # The entries whose previous modes fail take the eager step, as a batch of their own.
+            def pick(t: Tensor | None) -> Tensor | None:
+                return None if t is None else t[redo]
+
+            subset = SceneState(
+                q=q[redo], v=v[redo], q_kinematic=q_kinematic[redo], mode=mode[redo]
+            )
+            eager, codes, _ = self._step_compacted(
+                subset, pick(control), pick(force), pick(friction)
+            )
+            solution = solution.scatter(redo, eager)
+            solver = solver.index_put((redo,), codes)
+        geometry = SlotGeometry(
+            points=geometry.points.reshape(*batch, K, 2),
+            normals=geometry.normals.reshape(*batch, K, 2),
+            phi=geometry.phi.reshape(*batch, K),
+            active=geometry.active.reshape(*batch, K),
+        )
+        solution = solution.map_tensors(lambda t: t.reshape((*batch, *t.shape[1:])))
+        return solution, solver.reshape(batch), geometry
+
     def _step_compacted(
         self,
         state: SceneState,
@@ -622,3 +724,59 @@ class Simulator:
             pt=solution.pt.detach(),
         )
         return replace(solution, mode=canonical), solver
+
+
+def _step_at_modes(
+    scene: Scene,
+    q: Tensor,
+    v: Tensor,
+    q_kinematic: Tensor,
+    mode: Tensor,
+    solved: Tensor,
+    control: Tensor | None,
+    force: Tensor | None,
+    friction: Tensor | None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, SlotGeometry]:
+    """A step of a flat batch of a planar scene at given modes, with no host synchronisation
+    (the kernel of ``Simulator(compiled=True)``).
+
+    The problem is assembled on all ``K`` slots, where the solution is checked; the mode solve
+    runs on the slots ``solved`` alone (those that the modes make active, and at least one
+    separated slot): a separated slot carries no impulse and adds only an identity row to the
+    Schur system, so the solve is the same, on the systems the eager step factors.
+
+    Args:
+        scene: the scene (planar, without robots).
+        q: ``(P, Nd, 3)`` dynamic-body poses.
+        v: ``(P, Nd, 3)`` their twists.
+        q_kinematic: ``(P, Nk, 3)`` kinematic-body poses.
+        mode: ``(P, K)`` long modes to solve at.
+        solved: ``(P, W)`` long: the slots of the mode solve, every slot whose ``mode`` is not
+            separated among them.
+        control: ``(P, Nk, 3)`` kinematic-body twists, or ``None``.
+        force: ``(P, Nd, 3)`` applied forces, or ``None``.
+        friction: ``(P, K)`` per-slot friction, or ``None``.
+
+    Returns:
+        ``v_next (P, 3 Nd)``, ``pn (P, K)``, ``pt (P, K, 2)``, the canonical modes ``(P, K)``,
+        the LCP residual ``(P,)``, ``(P,)`` bool: the solution is consistent with ``mode`` and
+        converged, and the slot geometry (batch ``(P,)``).
+    """
+    slots = slot_state(scene, q, q_kinematic, control)
+    P, K = mode.shape
+    every = torch.arange(K, device=q.device).expand(P, K)
+    problem = assemble(scene, slots, v, every, force=force, friction=friction)
+    mode = torch.where(problem.slot_mask, mode, 0)
+    compact = assemble(scene, slots, v, solved, force=force, friction=friction)
+    solution = solve_mode_unchecked(compact, mode.gather(1, solved), sync_free=True)
+    v_next = solution.v_next
+    pn = torch.zeros_like(problem.phi).scatter(1, solved, solution.pn)
+    index = solved.unsqueeze(-1).expand(solution.pt.shape)
+    pt = torch.zeros_like(problem.b_tangent).scatter(1, index, solution.pt)
+    consistent = consistent_with_mode(
+        problem, v_next=v_next, pn=pn, pt=pt, mode=mode, atol=10 * default_tolerance(q.dtype)
+    )
+    canonical = contact_mode(problem, v_next=v_next, pn=pn, pt=pt)
+    residual = lcp_residual(problem, v_next=v_next, pn=pn, pt=pt)
+    good = consistent & solution.status.converged
+    return v_next, pn, pt, canonical, residual, good, slots.geometry
