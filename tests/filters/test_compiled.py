@@ -17,6 +17,7 @@ from tests.filters.test_contact_model import (
     _reference_linearization,
 )
 from tests.filters.test_rbpf import _problem, _run
+from torchcontact._compiled import kernel
 from torchcontact.filters import (
     RBPF,
     Gaussian,
@@ -28,7 +29,6 @@ from torchcontact.filters import (
     empirical_transition,
 )
 from torchcontact.filters import _contact_model as contact_model_module
-from torchcontact.filters._compiled import kernel
 from torchcontact.filters._planar_linearization import linearize_modes
 
 F64 = torch.float64

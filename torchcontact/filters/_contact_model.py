@@ -10,8 +10,8 @@ import torch
 from torch import Tensor
 
 from torchcontact._checks import FLOAT_DTYPES, describe
+from torchcontact._compiled import kernel
 from torchcontact.contact import solve_mode
-from torchcontact.filters._compiled import kernel
 from torchcontact.filters._mode_gate import check_gate, gate_log_weight
 from torchcontact.filters._planar_linearization import ModeTable, linearize_modes, mode_table
 from torchcontact.filters._planar_slots import SlotLayout, slot_layout
@@ -184,7 +184,7 @@ class PlanarContactModel(ContactModelFields):
         consistency_tolerance: relative tolerance of the consistency check.
         consistency_gap: gaps (metres) of a mode's contacts that the check treats as closed.
         compiled: run the linearization through :func:`torch.compile` (see
-            ``torchcontact.filters._compiled``; the first call compiles, tens of seconds, then
+            ``torchcontact._compiled``; the first call compiles, tens of seconds, then
             a call takes a third to a quarter of the eager time), with every mode's system laid
             out over the most slots any mode activates, so that its shapes do not depend on the
             linearization point (the same results to rounding).

@@ -15,8 +15,8 @@ import torch
 from torch import Tensor
 
 from torchcontact._checks import broadcast_batch, check_mask, check_tensor, describe
+from torchcontact._compiled import kernel
 from torchcontact.filters import _linalg as la
-from torchcontact.filters._compiled import kernel
 from torchcontact.filters._gaussian import Gaussian, check_gaussian, unchecked_gaussian
 from torchcontact.filters._kalman import observed_components
 from torchcontact.filters._manifold import EUCLIDEAN, Euclidean, Manifold
@@ -147,7 +147,7 @@ class RBPF:
             whenever the weights are not uniform).
         max_lag: ``L``, the longest lag of :meth:`RBPFBelief.fixed_lag_marginals`.
         compiled: run the particles' Kalman kernels through :func:`torch.compile` (see
-            ``torchcontact.filters._compiled``: the first steps compile, tens of seconds;
+            ``torchcontact._compiled``: the first steps compile, tens of seconds;
             then a step at ``N = 1,000`` takes about half the eager time, with a
             :class:`~torchcontact.filters.PlanarContactModel` that is compiled too; the results
             agree to rounding, not to the bit).

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor
 
 from torchcontact._checks import FLOAT_DTYPES, check_real, describe
+from torchcontact._compiled import kernel
 from torchcontact.contact import (
     SEPARATED,
     SLIDING,
@@ -26,7 +27,6 @@ from torchcontact.contact import (
     solve_mode_unchecked,
     update_mode,
 )
-from torchcontact.filters._compiled import kernel
 from torchcontact.filters._contact_model import ContactModelFields, rollout_modes
 from torchcontact.filters._manifold import SE3, Manifold
 from torchcontact.filters._mode_gate import check_gate, gate_log_weight
@@ -262,7 +262,7 @@ class SpatialContactModel(ContactModelFields):
             there (see the class docstring). ``inf`` disables the check.
         compiled: run the linearization's contact assembly through :func:`torch.compile`
             (one graph and its backward; see
-            ``torchcontact.filters._compiled``): the first step compiles (minutes on a CPU
+            ``torchcontact._compiled``): the first step compiles (minutes on a CPU
             for the BarrettHand scene; cached on disk for later processes), later steps take
             a fraction of the eager time; the results agree with the eager ones to rounding.
 
