@@ -12,6 +12,15 @@ from torch import Tensor
 #: fixed point (below it, the cheaper bitwise test is reached and costs fewer operations).
 SETTLED_MIN_BATCH = 64
 
+#: Order from which :func:`tikhonov_system` factors a CPU batch one matrix at a time. torch
+#: 2.13 factors a CPU batch concurrently over its matrices, and MKL's getrf, run concurrently
+#: on matrices of about 150 rows or more, returns pivots outside ``[1, m]`` while reporting
+#: success, or never returns (seen with two threads, AVX2 and AVX-512 code paths alike); one
+#: matrix a call is safe (getrf may still thread inside itself). Set with a 2x margin below
+#: the smallest failing order seen; at this order the loop costs about 1.5x the batched
+#: factorization (one thread), and nothing below it.
+LU_SEQUENTIAL_MIN_ORDER = 64
+
 
 @dataclass(frozen=True, eq=False)
 class TikhonovSystem:
@@ -58,9 +67,30 @@ def tikhonov_system(A: Tensor, shift: Tensor, *, products: bool = False) -> Tikh
         The :class:`TikhonovSystem`.
     """
     regularised = A + torch.diag_embed(shift)
-    LU, pivots = torch.linalg.lu_factor(regularised)
+    LU, pivots = _lu_factor(regularised)
     R = torch.linalg.lu_solve(LU, pivots, torch.diag_embed(shift)) if products else None
     return TikhonovSystem(LU=LU, pivots=pivots, shift=shift.unsqueeze(-1), R=R)
+
+
+def _lu_factor(matrices: Tensor) -> tuple[Tensor, Tensor]:
+    """``torch.linalg.lu_factor`` of ``matrices (*B, m, m)``, right with any thread count.
+
+    CPU batches of order at least :data:`LU_SEQUENTIAL_MIN_ORDER` are factored one matrix a
+    call (the batched call runs MKL's getrf concurrently, which fails at these orders);
+    differentiable like the batched call.
+
+    Returns:
+        ``(*B, m, m)`` LU factors and ``(*B, m)`` pivots.
+    """
+    m = matrices.shape[-1]
+    batch = matrices.shape[:-2]
+    if matrices.device.type != "cpu" or m < LU_SEQUENTIAL_MIN_ORDER or batch.numel() <= 1:
+        LU, pivots = torch.linalg.lu_factor(matrices)
+        return LU, pivots
+    factors = [torch.linalg.lu_factor(matrix) for matrix in matrices.reshape(-1, m, m)]
+    LU = torch.stack([factor for factor, _ in factors]).reshape(matrices.shape)
+    pivots = torch.stack([pivot for _, pivot in factors]).reshape(*batch, m)
+    return LU, pivots
 
 
 def iterated_tikhonov(
