@@ -15,10 +15,10 @@ SETTLED_MIN_BATCH = 64
 #: Order from which :func:`tikhonov_system` factors a CPU batch one matrix at a time. torch
 #: 2.13 factors a CPU batch concurrently over its matrices, and MKL's getrf, run concurrently
 #: on matrices of about 150 rows or more, returns pivots outside ``[1, m]`` while reporting
-#: success, or never returns (seen with two threads, AVX2 and AVX-512 code paths alike); one
-#: matrix a call is safe (getrf may still thread inside itself). Set with a 2x margin below
-#: the smallest failing order seen; at this order the loop costs about 1.5x the batched
-#: factorization (one thread), and nothing below it.
+#: success, or never returns (seen with two threads; right with one thread or one matrix a
+#: call, where getrf may still thread inside itself). Set with a 2x margin below the
+#: smallest failing order seen, as that order may differ between CPUs; at this order the loop
+#: costs about 1.5x the batched factorization (one thread), and nothing below it.
 LU_SEQUENTIAL_MIN_ORDER = 64
 
 
@@ -76,7 +76,7 @@ def _lu_factor(matrices: Tensor) -> tuple[Tensor, Tensor]:
     """``torch.linalg.lu_factor`` of ``matrices (*B, m, m)``, right with any thread count.
 
     CPU batches of order at least :data:`LU_SEQUENTIAL_MIN_ORDER` are factored one matrix a
-    call (the batched call runs MKL's getrf concurrently, which fails at these orders);
+    call (the batched call runs MKL's getrf concurrently, which fails at large orders);
     differentiable like the batched call.
 
     Returns:
