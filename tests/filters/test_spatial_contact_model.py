@@ -485,6 +485,20 @@ def test_self_contradicting_mode_is_ruled_out() -> None:
     assert math.isfinite(float(weights[1]))
 
 
+def test_the_chart_is_the_mean_where_the_likely_mode_is_not_solved() -> None:
+    """The belief's most probable mode contradicts itself (not solved): every mode's step is
+    expressed at the mean, not at that mode's meaningless answer, so the solved mode's offset
+    is its own step seen from the mean (``step()`` through the simulator's assembly)."""
+    scene, x, control, stuck, resting = box_stuck_to_a_moving_ball()
+    model = model_of(scene, torch.stack([stuck, resting]))
+    belief = RBPF(model, 2).init(Gaussian(x, 1e-6 * torch.eye(12, dtype=DT)))
+    belief = dataclasses.replace(belief, modes=torch.tensor([0, 0]))  # the unsolved mode
+    dynamics = model.mode_dynamics(belief, control)
+    torch.testing.assert_close(dynamics.chart, x, rtol=0.0, atol=1e-15)
+    step = model.step(x, mode=torch.tensor(1), control=control)
+    torch.testing.assert_close(dynamics.c[1], SE3.local(x, step), rtol=0.0, atol=1e-10)
+
+
 def test_a_point_no_mode_explains_holds_its_state() -> None:
     """The same box with only the self-contradicting mode in the table and the inconsistent
     modes ruled out: no mode's step is trusted, so the point holds its state for the step

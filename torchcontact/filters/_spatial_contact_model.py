@@ -111,6 +111,7 @@ class _Linearization:
         F: ``(P, K, 12, 12)`` tangent Jacobians (chart of each row: see ``_linearize``).
         f: ``(P, K, 13)`` the steps ``f_k(x̄)``.
         c: ``(P, K, 12)`` ``local(chart, f_k(x̄))`` (zero with the per-mode charts).
+        chart: ``(P, 13)`` the chart's point (with per-mode charts: the first mode's).
         converged: ``(P, K)`` bool, the mode's equalities were solved at ``x̄``.
         consistent: ``(P, K)`` bool, the gate's verdict (True where it is off).
         nearly: ``(P, K)`` bool, the verdict with ten times the tolerance.
@@ -121,6 +122,7 @@ class _Linearization:
     F: Tensor
     f: Tensor
     c: Tensor
+    chart: Tensor
     converged: Tensor
     consistent: Tensor
     nearly: Tensor
@@ -442,7 +444,8 @@ class SpatialContactModel(ContactModelFields):
 
         Returns:
             The :class:`ModeDynamics` with ``F (*B, K, 12, 12)``, ``c (*B, K, 12)``, ``origin``
-            the mixture mean ``(*B, 13)``, ``chart`` the most probable mode's step ``(*B, 13)``,
+            the mixture mean ``(*B, 13)``, ``chart`` the most probable mode's step ``(*B, 13)``
+            (the mean where that mode is not solved or the point holds),
             ``measurement_chart`` its pose ``(*B, 7)``, the constant noise and camera model
             and the modes' log-weights (see the class docstring).
         """
@@ -453,7 +456,7 @@ class SpatialContactModel(ContactModelFields):
         likely = belief.mode_marginals().reshape(-1, self.num_modes).argmax(-1)
         lin = self._linearize(flat, ctrl, chart_mode=likely)
         K, dtype = self.num_modes, self.dtype
-        chart = lin.f.gather(1, likely[:, None, None].expand(-1, 1, STATE_DIM))[:, 0]
+        chart = lin.chart
         log_weight = gate_log_weight(
             lin.consistent,
             penalty=self.inconsistency_penalty,
@@ -597,7 +600,15 @@ class SpatialContactModel(ContactModelFields):
         if chart_mode is None:
             chart = f
         else:
-            chart = f.gather(1, chart_mode.to(x.device)[:, None, None].expand(P, K, STATE_DIM))
+            # The chart mode's step, or the point itself where that mode is not solved (its
+            # step means nothing and would carry every mode's offset c with it).
+            index = chart_mode.to(x.device)[:, None]
+            chart_point = torch.where(
+                converged.gather(1, index),
+                f.gather(1, index[..., None].expand(P, 1, STATE_DIM))[:, 0],
+                x,
+            )
+            chart = chart_point[:, None].expand(P, K, STATE_DIM)
         with torch.enable_grad():
             # Eager: compiled, its backward through the Tikhonov iterations' LU solves runs as
             # triangular solves on every replica's full system, slower than eager with many
@@ -623,8 +634,16 @@ class SpatialContactModel(ContactModelFields):
         )
         c = torch.where(kept[..., None] & c.isfinite().all(-1, keepdim=True), c, 0.0)
         f = torch.where(kept[..., None], f, x.unsqueeze(1))
+        chart = torch.where(stranded[..., None], x.unsqueeze(1), chart)
         return _Linearization(
-            F=F, f=f, c=c, converged=converged, consistent=consistent, nearly=nearly, held=stranded
+            F=F,
+            f=f,
+            c=c,
+            chart=chart[:, 0],
+            converged=converged,
+            consistent=consistent,
+            nearly=nearly,
+            held=stranded,
         )
 
     def _closed_gaps(self, problem: ContactProblem, modes: Tensor) -> ContactProblem:
