@@ -222,10 +222,10 @@ class SpatialContactModel(ContactModelFields):
     contacts up to ``consistency_gap``, as :class:`~torchcontact.filters.PlanarContactModel`
     does (the shared gate). A mode whose Jacobian has an entry above ``max_gain`` (default
     1e6; a legitimate step amplifies a gap over a lever arm r by about 1 / (h r), 1e4 at
-    h = 10 ms and r = 1 cm) counts as not solved: its system is singular at the point (a
-    sliding contact whose friction split between two directions is set at zero slip, rows
-    that change rank), so its derivative is not that of any nearby step and a particle a
-    millimetre from the mean would be carried at hundreds of metres per second.
+    h = 10 ms and r = 1 cm) counts as not solved: its system is nearly singular at the point
+    (on the Barrett box, a finger sticking while the table's contacts slide gave entries of
+    5e9 with respect to the box's height), so its derivative describes no nearby step, and a
+    particle a millimetre from the mean would be carried at hundreds of metres per second.
     A point at which no mode is solved (with ``inconsistency_penalty = inf``: none that
     passes even a ten times looser consistency check) holds its state for the step (every
     mode the identity, log-weight 0) rather than losing every mode: the step of a mode that
