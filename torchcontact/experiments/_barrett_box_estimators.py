@@ -286,8 +286,10 @@ def run_box_rbpf(
         if projection:
             # the robot where the step leaves it: the belief's time
             after = RobotControl(q_robot=q_robot[t + 1], v_robot=control.v_robot)
+            # each mode's contacts where the belief now is (its group states resolved)
+            table = model.slot_modes(belief.mean(), control=after)
             belief = project_out_of_contact(
-                belief, model.scene, gap_sigma=gap_sigma, control=after, mode_table=model.modes
+                belief, model.scene, gap_sigma=gap_sigma, control=after, mode_table=table
             )
         poses.append(belief.mean()[..., :7])
         probs.append(torch.einsum("bk,kpc->bpc", belief.mode_marginals().to(F64), one_hot))

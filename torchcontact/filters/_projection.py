@@ -81,7 +81,10 @@ def project_out_of_contact(
         control: the robots' joint positions and base poses (and kinematic bodies' poses) at
             the belief's time, batch ``*B`` (spatial scenes; their velocities are not used).
         mode_table: ``(K, S)`` long, the model's per-slot modes of its ``K`` modes
-            (``S = scene.num_slots``; spatial scenes), or None: penetrated slots only.
+            (``S = scene.num_slots``; spatial scenes), or ``(*B, K, S)`` per batch entry
+            (e.g. :meth:`~torchcontact.filters.SpatialContactModel.slot_modes` at the
+            belief's mean: a table of slot-group states names every slot of a touching group,
+            its resolution only the slots that touch), or None: penetrated slots only.
 
     Returns:
         The belief with projected Gaussians.
@@ -159,12 +162,15 @@ def _project_spatial(
         if (
             not isinstance(mode_table, Tensor)
             or mode_table.dtype != torch.long
-            or tuple(mode_table.shape) != (K, S)
+            or tuple(mode_table.shape) not in ((K, S), (*batch, K, S))
         ):
             raise ValueError(
-                f"mode_table: expected a long ({K}, {S}) tensor, got {describe(mode_table)}"
+                f"mode_table: expected a long ({K}, {S}) or {(*batch, K, S)} tensor, got "
+                f"{describe(mode_table)}"
             )
-        slot_modes = mode_table.to(phi.device)[belief.modes.reshape(-1)]  # (P, S)
+        table = mode_table.to(phi.device).expand(*batch, K, S)
+        index = belief.modes.clamp(min=0)[..., None].expand(*batch, N, S)
+        slot_modes = table.gather(-2, index).reshape(P, S)  # (P, S)
         closed = geometry.active & (slot_modes >= 1)
         sticking = geometry.active & (slot_modes == 1)
         constrained = constrained | closed

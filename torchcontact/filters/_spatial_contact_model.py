@@ -23,6 +23,7 @@ from torchcontact.contact import (
     is_sliding,
     num_modes,
     relative_residual,
+    solve_lemke,
     solve_mode,
     solve_mode_unchecked,
     update_mode,
@@ -206,8 +207,14 @@ class SpatialContactModel(ContactModelFields):
     opposed to its slip in the step with the sliding slots frictionless (maximal
     dissipation), then one more round moves it between an edge and the adjacent faces of
     the cone. A mode none of whose slots of a touching group lies within the gap is ruled
-    out. The step, its Jacobian, the gate and the tactile evidence are those of the
-    resolved slots.
+    out. With ``exact_resolution`` (the default), the contact problem at :math:`\bar x` is
+    also solved exactly (Lemke, with penetrations taken as touching: the gaps clamped at
+    zero), and the mode whose group states are those of that solution takes its slots and
+    directions instead: the physics' own mode at the mean is then in the table whenever its
+    group states are, and it passes the gate by construction (the rules above are a
+    heuristic: on the Barrett box grasp they left no mode consistent at about half of the
+    grasp's steps). The step, its Jacobian, the gate and the tactile evidence are those of
+    the resolved slots (:meth:`slot_modes`).
 
     Modes ruled out. A mode whose equalities contradict each other at :math:`\bar x` (its
     ``solve_mode`` does not converge and its answer does not solve the contact problem
@@ -259,6 +266,9 @@ class SpatialContactModel(ContactModelFields):
         resolve_slots: a mode fixes the state of each slot group; its slots and sliding
             directions are resolved at the linearization point (see the class docstring).
             :meth:`from_rollout` then merges the modes with the same group states.
+        exact_resolution: with :attr:`resolve_slots`, the mode whose group states are
+            those of the exact solution at the linearization point takes its slots (see
+            the class docstring; one Lemke solve per point and step).
         max_gain: the largest entry of a mode's tangent Jacobian that is taken as a step;
             a mode whose Jacobian exceeds it at the linearization point counts as not solved
             there (see the class docstring). ``inf`` disables the check.
@@ -283,14 +293,16 @@ class SpatialContactModel(ContactModelFields):
     consistency_gap: float = 0.003
     resolve_slots: bool = False
     max_gain: float = 1e6
+    exact_resolution: bool = True
     compiled: bool = False
 
     def __post_init__(self) -> None:
         scene = self.scene
         if self.max_gain != math.inf:  # inf disables the check
             check_real("max_gain", self.max_gain, low=0.0, low_open=True)
-        if not isinstance(self.compiled, bool):
-            raise ValueError(f"compiled: expected a bool, got {self.compiled!r}")
+        for name in ("compiled", "exact_resolution"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name}: expected a bool, got {getattr(self, name)!r}")
         if not isinstance(scene, Scene) or scene.dimension != 3:
             raise ValueError(f"scene: expected a spatial Scene, got {describe(scene)}")
         if len(scene.dynamic) != 1:
@@ -529,6 +541,33 @@ class SpatialContactModel(ContactModelFields):
             lin.converged.reshape(*batch, K),
         )
 
+    def slot_modes(self, x: Tensor, *, control: RobotControl | None = None) -> Tensor:
+        """Every mode's per-slot modes at ``x``: the table's rows, or, with
+        :attr:`resolve_slots`, their slots and sliding directions resolved at ``x`` (see the
+        class docstring), the contacts each mode's step closes there.
+
+        Args:
+            x: ``(*B, 13)`` pose and twist (world frame).
+            control: the robots' measured motion, batch broadcastable to ``*B``.
+
+        Returns:
+            ``(*B, K, S)`` long per-slot modes (``S = scene.num_slots``).
+        """
+        _check_state(x)
+        batch, K, S = x.shape[:-1], self.num_modes, self.scene.num_slots
+        if not self.resolve_slots:
+            return self.modes.to(x.device).expand(*batch, K, S)
+        ctrl = check_control(self.scene, control, batch, device=self.device)
+        flat = x.reshape(-1, STATE_DIM).detach().to(torch.float64)
+        slots = self._acting_slots.to(x.device)
+        modes = self.modes.to(x.device).index_select(1, slots).expand(flat.shape[0], K, -1)
+        with torch.no_grad():
+            problem = _select_slots(robot_contact_problem(self.scene, flat, ctrl)[0], slots)
+            resolved, _ = self._resolved(_per_mode(problem, K), modes, slots)
+        out = torch.zeros(flat.shape[0], K, S, dtype=torch.long, device=x.device)
+        out[..., slots] = resolved
+        return out.reshape(*batch, K, S)
+
     def _linearize(
         self, x: Tensor, control: _Control, chart_mode: Tensor | None = None
     ) -> _Linearization:
@@ -670,7 +709,16 @@ class SpatialContactModel(ContactModelFields):
         closed = self._closed_gaps(problem, resolved)
         corrected = update_mode(closed, solve_mode_unchecked(closed, resolved))
         resolved = torch.where((resolved >= 1) & (corrected == SEPARATED), SEPARATED, resolved)
-        return _resolved_sliding(self._closed_gaps(problem, resolved), resolved), reachable
+        resolved = _resolved_sliding(self._closed_gaps(problem, resolved), resolved)
+        if not self.exact_resolution:
+            return resolved, reachable
+        exact, solved = _physics_modes(problem[:, 0])  # (P, S_a), (P,)
+        # the modes whose group states are those of the physics' answer take its slots
+        wanted_states = _group_max(modes.clamp(max=SLIDING), groups)  # (P, K, G)
+        exact_states = _group_max(exact.clamp(max=SLIDING), groups)  # (P, G)
+        match = (wanted_states == exact_states[:, None]).all(-1) & solved[:, None]  # (P, K)
+        resolved = torch.where(match[..., None], exact[:, None], resolved)
+        return resolved, reachable | match
 
     def _advance(self, x: Tensor, v_next: Tensor) -> Tensor:
         """``(*P, 13)``: the pose integrated over the step with the twist ``v_next (*P, 6)``
@@ -848,6 +896,13 @@ def _group_max(values: Tensor, groups: Tensor) -> Tensor:
     G = int(groups.max()) + 1 if groups.numel() else 0
     per_group = values.new_zeros(*values.shape[:-1], G)
     return per_group.scatter_reduce(-1, groups.expand_as(values), values, "amax")
+
+
+def _physics_modes(problem: ContactProblem) -> tuple[Tensor, Tensor]:
+    """The contact modes ``(P, S)`` of the exact (Lemke) solutions of ``problem (P,)`` with
+    its penetrations taken as touching (gaps clamped at zero), and ``(P,)`` bool, solved."""
+    solution = solve_lemke(_with_phi(problem, problem.phi.clamp(min=0.0)))
+    return solution.mode, solution.status.converged
 
 
 def _resolved_sliding(problem: ContactProblem, modes: Tensor) -> Tensor:
