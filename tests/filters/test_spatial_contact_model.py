@@ -14,6 +14,7 @@ import pytest
 import torch
 from torch import Tensor
 
+from torchcontact.experiments import BarrettBoxGrasp, box_filter_scene
 from torchcontact.filters import (
     RBPF,
     SE3,
@@ -698,6 +699,36 @@ def test_projection_sets_a_box_on_the_table_its_mode_touches() -> None:
         )
 
 
+def test_projection_sets_the_box_on_the_corners_its_resolved_mode_touches() -> None:
+    """A table of slot-group states names all eight corners of the box-table group;
+    ``slot_modes`` at a box 5 mm over the table resolves it to the four bottom corners (the
+    top ones are 6.5 cm up), and the projection with that per-batch table lowers the box as
+    the closed form of the test above (four pseudo-measurements of the gap +5 mm)."""
+    scene = hand_scene(height=1.0)
+    table = next(g for g in scene.slot_groups)
+    sticking = torch.zeros(1, scene.num_slots, dtype=torch.long)
+    sticking[0, table.start : table.start + table.count] = 1
+    model = model_of(
+        scene, sticking, resolve_slots=True, inconsistency_penalty=math.inf, consistency_gap=0.01
+    )
+    height, p, sigma = 0.005, 1e-4, 1e-3
+    x = state((0.01, -0.02, HALF[2] + height))
+    zeros = torch.zeros(4, dtype=DT)
+    control = RobotControl(q_robot=zeros, v_robot=zeros)
+    resolved = model.slot_modes(x[None], control=control)  # (1, K, S)
+    bottom = torch.zeros(scene.num_slots, dtype=torch.long)
+    bottom[table.start : table.start + 4] = 1  # the box's bottom corners come first
+    assert (resolved[0, 0] == bottom).all()  # integers: exact
+    belief = RBPF(model, 1).init(Gaussian(x[None], p * torch.eye(12, dtype=DT)[None]))
+    projected = project_out_of_contact(
+        belief, scene, gap_sigma=sigma, control=control, mode_table=resolved
+    )
+    var = 1.0 / (1.0 / p + 4.0 / sigma**2)
+    lowered = x.clone()
+    lowered[2] -= var * 4.0 * height / sigma**2
+    torch.testing.assert_close(projected.gaussians.mean[0, 0], lowered, rtol=0.0, atol=1e-12)
+
+
 def test_projection_stops_the_twist_its_mode_forbids() -> None:
     """A box resting on the table with a twist (v, ω) and a diagonal covariance: in a mode
     whose four bottom corners stick, the projection brings the twist to zero (the only twist
@@ -872,3 +903,59 @@ def test_compiled_must_be_a_bool() -> None:
     modes = torch.zeros(1, scene.num_slots, dtype=torch.long)
     with pytest.raises(ValueError, match="compiled"):
         model_of(scene, modes, compiled=1)
+
+
+def barrett_box_resting_against_finger_3() -> tuple[SpatialContactModel, Tensor, RobotControl]:
+    """A state of the Barrett box grasp (trial 1, step 46, seed 0): the box at rest on the
+    table, finger 3 closing on it at 0.51 rad/s while fingers 1 and 2 are still away; the
+    model's one mode is the simulator's slot-group states there (the table sliding, finger
+    3's outer link sticking)."""
+    settings = BarrettBoxGrasp()
+    scene = box_filter_scene(settings, (0.031450, 0.027911, 0.039465))
+    x = torch.tensor(
+        [0.602438, -0.017674, 0.039465, 0.9991033, 0.0, 0.0, -0.0423402, *([0.0] * 6)],
+        dtype=DT,
+    )
+    x[3:7] = x[3:7] / x[3:7].norm()
+    arm = [0.435822, 0.689164, -0.815362, 1.667488, 0.567571, 1.037421, 2.577444]
+    q_robot = torch.tensor([*arm, 0.0, 1.075, 1.075, 1.075], dtype=DT)
+    v_robot = torch.tensor([*([0.0] * 7), 0.0, 1.5, 1.5, 0.508687], dtype=DT)
+    simulated = torch.zeros(scene.num_slots, dtype=torch.long)
+    simulated[2:4] = 8  # two corners sliding
+    simulated[-1] = 1  # finger 3's outer link
+    model = model_of(
+        scene,
+        group_states(scene, simulated[None]),
+        resolve_slots=True,
+        inconsistency_penalty=5.0,
+        consistency_gap=0.01,
+    )
+    return model, x, RobotControl(q_robot=q_robot, v_robot=v_robot)
+
+
+def test_exact_resolution_gives_the_physics_mode_at_the_point() -> None:
+    """At a grasp state where the resolution rules leave the simulator's mode inconsistent
+    (-5, the penalty), the exact resolution takes the slots of Lemke's solution there: the
+    mode passes the gate (0), and its step is the simulator's (no gap closed, no penetration
+    at the state: the same problem; 1e-9 of the unit velocities)."""
+    model, x, control = barrett_box_resting_against_finger_3()
+    belief = RBPF(model, 1).init(Gaussian(x, 1e-10 * torch.eye(12, dtype=DT)))
+    rules = dataclasses.replace(model, exact_resolution=False)
+    rules_weight = rules.mode_dynamics(belief, control).mode_log_weight
+    exact_weight = model.mode_dynamics(belief, control).mode_log_weight
+    assert rules_weight is not None
+    assert exact_weight is not None
+    assert float(rules_weight[0]) == -5.0  # the gate's constants: exact
+    assert float(exact_weight[0]) == 0.0
+    # the step of the resolved mode, gaps as they are, against the simulator's step
+    _, f, converged = dataclasses.replace(model, consistency_gap=0.0).linearize(x, control=control)
+    assert bool(converged[0])
+    simulator = Simulator(model.scene)
+    start = simulator.initial_state(
+        q=x[None, None, :7], v=x[None, None, 7:], q_robot=control.q_robot[None]
+    )
+    result = simulator.step(start, joint_command=control.v_robot[None])
+    exact = torch.cat([result.state.q[0, 0], result.state.v[0, 0]])
+    torch.testing.assert_close(f[0], exact, rtol=0.0, atol=1e-9)
+    slots = model.slot_modes(x, control=control)[0]
+    assert ((slots >= 1) == (result.mode[0] >= 1)).all()  # integers: exact
