@@ -147,7 +147,7 @@ def test_bad_arguments_name_the_argument() -> None:
             process_std=torch.zeros(6, dtype=F64),
             measurement_std=torch.zeros(3, dtype=F64),
         )
-    with pytest.raises(ValueError, match=r"^fallback: "):
+    with pytest.raises(ValueError, match=r"^fallback"):
         dataclasses.replace(_filter(2), fallback=("simplex",))
     pf = _filter(2)
     box, q_kin, v_kin = _pushes(1)

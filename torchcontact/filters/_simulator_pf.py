@@ -5,8 +5,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from collections.abc import Callable
-from dataclasses import KW_ONLY, dataclass
-from typing import get_args
+from dataclasses import KW_ONLY, dataclass, field
 
 import torch
 from torch import Tensor
@@ -147,6 +146,7 @@ class SimulatorParticleFilter:
     measurement_std: Tensor
     resampling: ResamplingMethod = "systematic"
     fallback: tuple[Method, ...] = ("lemke", "qp")
+    _simulator: Simulator = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not isinstance(self.scene, Scene) or len(self.scene.dynamic) != 1:
@@ -165,11 +165,8 @@ class SimulatorParticleFilter:
                 raise ValueError(f"{name}: expected a ({size},) tensor >= 0, got {value}")
         if bool((self.measurement_std == 0).any()):
             raise ValueError(f"measurement_std: expected > 0, got {self.measurement_std}")
-        methods = get_args(Method)
-        if not isinstance(self.fallback, tuple) or not all(m in methods for m in self.fallback):
-            raise ValueError(
-                f"fallback: expected a tuple of methods among {methods}, got {self.fallback!r}"
-            )
+        # the simulator every step runs (it validates ``fallback``)
+        object.__setattr__(self, "_simulator", Simulator(self.scene, fallback=self.fallback))
         if self.resampling not in RESAMPLING_METHODS:
             raise ValueError(
                 f"resampling: expected one of {RESAMPLING_METHODS}, got {self.resampling!r}"
@@ -250,7 +247,7 @@ class SimulatorParticleFilter:
             index = resample(belief.log_weights, method=self.resampling, generator=generator)
             x = torch.gather(x, -2, index[..., None].expand(*batch, N, x.shape[-1]))
             mode = torch.gather(mode, -2, index[..., None].expand(*batch, N, mode.shape[-1]))
-        simulator = Simulator(self.scene, fallback=self.fallback)
+        simulator = self._simulator
         if spatial:
             state, result = self._simulate_spatial(simulator, x, mode, control, like)
         else:
