@@ -245,6 +245,59 @@ def test_jacobian_of_a_barrett_finger_closing_on_a_box() -> None:
     assert not bool(converged[0])
 
 
+def test_only_the_solved_modes_are_differentiated() -> None:
+    """Finger 1 closing on the tilted box at two points at once: where it touches (A) and
+    1 cm further along +x (B, the box free). The table: the link's first slot sticking, both
+    its slots sticking (contradicts itself at A: not solved there), the simulator's mode at A
+    (the first slot sliding) and free flight (the simulator's at B). Each solved (point, mode)
+    pair's Jacobian equals finite differences at its point, its offset the steps seen from
+    the chart (``step()``), and the simulator's mode at each point passes the gate with the
+    simulator's (Lemke's) step; the unsolved pair keeps the placeholders (the identity, the
+    point itself) and log-weight -inf."""
+    scene, x, q_robot, v_robot, modes, outer = finger_on_a_tilted_box()
+    points = torch.stack([x, x + torch.tensor([0.01, *([0.0] * 12)], dtype=DT)])
+    simulator = Simulator(scene)
+    start = simulator.initial_state(
+        q=points[:, None, :7], v=points[:, None, 7:], q_robot=q_robot.expand(2, 4)
+    )
+    result = simulator.step(start, joint_command=v_robot.expand(2, 4))
+    exact = torch.cat([result.state.q[:, 0], result.state.v[:, 0]], dim=-1)  # (2, 13)
+    both = modes[0].clone()
+    both[outer + 1] = 1
+    assert (result.mode[1] == modes[2]).all()  # B: free flight (integers: exact)
+    table = torch.stack([modes[0], both, result.mode[0], modes[2]])
+    model = model_of(scene, table, consistency_gap=0.0)
+    control = RobotControl(q_robot=q_robot, v_robot=v_robot)
+    F, f, converged = model.linearize(points, control=control)
+    assert converged.tolist() == [[True, False, True, True], [True, True, True, True]]
+    for p, k in converged.nonzero().tolist():
+        expected = finite_difference_jacobian(model, points[p], k, control)
+        scale = float(expected.abs().max())  # the tolerance of assert_jacobian_matches
+        torch.testing.assert_close(F[p, k], expected, rtol=0.0, atol=1e-7 * scale)
+    assert (F[0, 1] == torch.eye(12, dtype=DT)).all()  # the placeholder is copied
+    assert (f[0, 1] == points[0]).all()
+    for p, k in ((0, 2), (1, 3)):  # the simulator's modes: its steps to the solver's 1e-9
+        torch.testing.assert_close(f[p, k], exact[p], rtol=0.0, atol=1e-9)
+    belief = RBPF(model, 4).init(
+        Gaussian(points, 1e-10 * torch.eye(12, dtype=DT).expand(2, 12, 12))
+    )
+    belief = dataclasses.replace(belief, modes=torch.zeros(2, 4, dtype=torch.long))
+    dynamics = model.mode_dynamics(belief, control)
+    weights = dynamics.mode_log_weight
+    assert weights is not None
+    assert float(weights[0, 1]) == -math.inf
+    assert float(weights[0, 2]) == 0.0  # the gate's constants: exact
+    assert float(weights[1, 3]) == 0.0
+    assert (dynamics.F[0, 1] == torch.eye(12, dtype=DT)).all()
+    for p in range(2):
+        chart = model.step(points[p], mode=torch.tensor(0), control=control)  # the likely one
+        for k in converged[p].nonzero()[:, 0].tolist():
+            step = model.step(points[p], mode=torch.tensor(k), control=control)
+            torch.testing.assert_close(
+                dynamics.c[p, k], SE3.local(chart, step), rtol=0.0, atol=1e-10
+            )
+
+
 def test_jacobian_of_a_box_sliding_on_redundant_corners() -> None:
     """A box sliding along +x (and turning) on its four bottom corners: a singular system
     whose friction rows share the normal rows' redundancy (the step is unique)."""

@@ -5,8 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import weakref
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -19,6 +18,7 @@ from torchcontact.contact import (
     SEPARATED,
     SLIDING,
     ContactProblem,
+    Solution,
     is_consistent,
     is_sliding,
     num_modes,
@@ -37,8 +37,6 @@ from torchcontact.geometry import SlotGeometry, quat_to_matrix
 from torchcontact.sim import Rollout, Scene, SceneState, contact_problem, integrate_poses
 from torchcontact.states import ContactSet, PartnerKind, TactileArray
 
-#: Scenes assembled eagerly in this process (see ``SpatialContactModel._linearize``).
-_ASSEMBLED: weakref.WeakSet[Scene] = weakref.WeakSet()
 STATE_DIM = 13  # position, quaternion (w, x, y, z), linear and angular velocity
 TANGENT_DIM = 12  # (δp, δθ, δv, δω)
 OBS_DIM = 7  # the camera's pose: position and quaternion
@@ -84,22 +82,24 @@ class _Control:
 
     def expand(self, repeat: int) -> _Control:
         """Each entry repeated ``repeat`` times, consecutively: ``(P · repeat, ...)``."""
+        return self._map(lambda t: t.repeat_interleave(repeat, dim=0))
+
+    def select(self, index: Tensor) -> _Control:
+        """The entries ``index (Q,)`` (long): ``(Q, ...)``."""
+        return self._map(lambda t: t.index_select(0, index))
+
+    def _map(self, fn: Callable[[Tensor], Tensor]) -> _Control:
+        """Every field through ``fn`` (the optional ones where given)."""
 
         def each(t: Tensor | None) -> Tensor | None:
-            return None if t is None else t.repeat_interleave(repeat, dim=0)
+            return None if t is None else fn(t)
 
-        q_robot, v_robot = each(self.q_robot), each(self.v_robot)
-        robot_base, q_kinematic = each(self.robot_base), each(self.q_kinematic)
-        assert q_robot is not None
-        assert v_robot is not None
-        assert robot_base is not None
-        assert q_kinematic is not None
         return _Control(
-            q_robot=q_robot,
-            v_robot=v_robot,
-            robot_base=robot_base,
+            q_robot=fn(self.q_robot),
+            v_robot=fn(self.v_robot),
+            robot_base=fn(self.robot_base),
             base_twist=each(self.base_twist),
-            q_kinematic=q_kinematic,
+            q_kinematic=fn(self.q_kinematic),
             v_kinematic=each(self.v_kinematic),
         )
 
@@ -171,8 +171,9 @@ class SpatialContactModel(ContactModelFields):
     (:class:`~torchcontact.filters.ModeDynamics` with ``origin`` :math:`\bar x` and ``chart``
     :math:`z`). The Jacobian is exact (float64, automatic differentiation of the
     step through :func:`~torchcontact.sim.contact_problem` and
-    :func:`~torchcontact.contact.solve_mode`, the twelve tangent directions and all ``K``
-    modes in one batch): the mode solve is differentiated from its converged impulses
+    :func:`~torchcontact.contact.solve_mode`, the twelve tangent directions of every mode
+    solved at :math:`\bar x` in one batch; the others' Jacobians are placeholders, see Modes
+    ruled out): the mode solve is differentiated from its converged impulses
     (``initial_impulses``), where its iterated Tikhonov iterations are a fixed point, so the
     derivative is that of the converged system (the implicit-function derivative, whose
     iterates converge as the solve's own), not that of a finite number of iterations from
@@ -213,8 +214,8 @@ class SpatialContactModel(ContactModelFields):
     directions instead: the physics' own mode at the mean is then in the table whenever its
     group states are, and it passes the gate by construction (the rules above are a
     heuristic: at 12 of 48 true states of Barrett box grasps they made the simulator's own
-    mode inconsistent, the exact resolution at 3). The step, its Jacobian, the gate and the tactile evidence are those of
-    the resolved slots (:meth:`slot_modes`).
+    mode inconsistent, the exact resolution at 3). The step, its Jacobian, the gate and the
+    tactile evidence are those of the resolved slots (:meth:`slot_modes`).
 
     Modes ruled out. A mode whose equalities contradict each other at :math:`\bar x` (its
     ``solve_mode`` does not converge and its answer does not solve the contact problem
@@ -575,47 +576,25 @@ class SpatialContactModel(ContactModelFields):
 
         ``chart_mode (P,)``: express every mode's step in the tangent at the step of that
         mode (``c`` its offsets); None: each mode's in its own (``c = 0``). The contact
-        problems are assembled once per point (they do not depend on the mode) and reduced
-        to the slots that some mode activates (the others are separated in every mode and
-        carry no impulse: the same steps). With :attr:`compiled`, the assembly of the
-        replicas (:func:`_replica_problems`) runs as a compiled graph and its derivative as
-        its compiled backward; the mode solves run eagerly.
+        problem is assembled once per point (it does not depend on the mode) and reduced to
+        the slots that some mode activates (the others are separated in every mode and carry
+        no impulse: the same steps); every mode is resolved, solved and gated there. Only the
+        solved modes are differentiated (the others' ``F`` and ``c`` are placeholders): their
+        tangent replicas are assembled by :func:`_replica_problems` and stepped by
+        :func:`_tangent_steps`. With :attr:`compiled`, the replicas' assembly runs as a
+        compiled graph and its derivative as its compiled backward; the mode solves run
+        eagerly.
         """
         P, K, D = x.shape[0], self.num_modes, TANGENT_DIM
         slots = self._acting_slots.to(x.device)
         modes = self.modes.to(x.device).index_select(1, slots).expand(P, K, -1)
-        # Static shapes (a filter's K and batch do not change), the Python wrapper (the C++
-        # one takes about 1.7 times as long to compile).
-        options: dict[str, Any] = {"compiled": self.compiled, "cpp_wrapper": False}
-        options["dynamic"] = False
-        if self.compiled and self.scene not in _ASSEMBLED:
-            # One eager assembly reads the scene's bodies into the simulator's cached layout,
-            # so that the compiled graph finds it (building it there would split the graph).
-            with torch.no_grad():
-                robot_contact_problem(self.scene, x, control)
-            _ASSEMBLED.add(self.scene)
-        # One assembly: a batch of P·K·12 points retract(x, δ), δ = 0 requiring grad, whose
-        # values are the problems at x (in every mode) and whose derivatives along δ are
-        # taken by reverse-mode differentiation (faster here than forward mode): replica
-        # (p, k, i) yields row i of mode k's Jacobian at point p.
-        with torch.enable_grad():
-            delta = x.new_zeros(P, K, D, D).requires_grad_()
-            moved, fields = kernel(_replica_problems, **options)(
-                self.scene,
-                x,
-                delta,
-                slots,
-                q_robot=control.q_robot,
-                v_robot=control.v_robot,
-                robot_base=control.robot_base,
-                base_twist=control.base_twist,
-                q_kinematic=control.q_kinematic,
-                v_kinematic=control.v_kinematic,
-            )
-            problem_d = ContactProblem.unchecked(h=self.scene.h, **fields)
         with torch.no_grad():
-            # (P, K) at x with the gaps of each mode's contacts closed: the step and the check
-            at_x = problem_d.map_tensors(lambda t: t[:, :, 0].detach())  # (P, K)
+            # (P, K) at x with the gaps of each mode's contacts closed: the step and the check.
+            # Eager, this also reads the scene's bodies into the simulator's cached layout
+            # before the compiled replicas' assembly (building it there would split the graph).
+            at_x = _per_mode(
+                _select_slots(robot_contact_problem(self.scene, x, control)[0], slots), K
+            )
             reachable = torch.ones(P, K, dtype=torch.bool, device=x.device)
             if self.resolve_slots and slots.numel() > 0:
                 modes, reachable = self._resolved(at_x, modes, slots)
@@ -648,15 +627,14 @@ class SpatialContactModel(ContactModelFields):
                 x,
             )
             chart = chart_point[:, None].expand(P, K, STATE_DIM)
-        with torch.enable_grad():
-            # Eager: compiled, its backward through the Tikhonov iterations' LU solves runs as
-            # triangular solves on every replica's full system, slower than eager with many
-            # modes (BarrettHand, K = 16: 133 ms per backward against ~40 ms eager).
-            local = _tangent_steps(
-                self, moved, fields, problem.phi, modes, chart, solution.pn, solution.pt
+        # The solved (point, mode) pairs, the only ones whose Jacobian is used.
+        point, mode = converged.nonzero(as_tuple=True)  # (Q,), (Q,)
+        F = torch.eye(D, dtype=x.dtype, device=x.device).repeat(P, K, 1, 1)
+        c = x.new_zeros(P, K, D)
+        if point.numel() > 0:
+            F[point, mode], c[point, mode] = self._solved_jacobians(
+                x, control, slots, (point, mode), problem, solution, modes, chart
             )
-            (F,) = torch.autograd.grad(local.diagonal(dim1=-2, dim2=-1).sum(), delta)
-        c = local.detach()[:, :, 0]
         # A mode whose derivative is singular at the point is not solved there.
         converged = converged & (F.abs().amax((-2, -1)) <= self.max_gain)
         # A point with no solved mode (with the inconsistent modes ruled out: none that passes
@@ -684,6 +662,75 @@ class SpatialContactModel(ContactModelFields):
             nearly=nearly,
             held=stranded,
         )
+
+    def _solved_jacobians(
+        self,
+        x: Tensor,
+        control: _Control,
+        slots: Tensor,
+        pairs: tuple[Tensor, Tensor],
+        problem: ContactProblem,
+        solution: Solution,
+        modes: Tensor,
+        chart: Tensor,
+    ) -> tuple[Tensor, Tensor]:
+        """The Jacobians ``F (Q, 12, 12)`` and offsets ``c (Q, 12)`` of the ``pairs`` of
+        :meth:`_linearize`, ``(Q,)`` point and ``(Q,)`` mode indices (non-empty), from its
+        closed-gap ``problem`` and ``solution`` at ``x``, batch ``(P, K)``, its resolved
+        ``modes (P, K, S_a)`` and charts ``(P, K, 13)``.
+
+        One assembly: a batch of Q·12 points retract(x, δ), δ = 0 requiring grad, whose values
+        are the problems at x and whose derivatives along δ are taken by reverse-mode
+        differentiation (faster here than forward mode): replica (q, i) yields row i of pair
+        q's Jacobian.
+        """
+        D, Q = TANGENT_DIM, pairs[0].numel()
+        if self.compiled:
+            # Compiled with static shapes, each new number of pairs would compile anew (about
+            # a minute on a CPU): the pairs are padded (repeating the first) to the next power
+            # of two, at most P·K, so that a filter compiles at most log2(P·K) + 1 variants,
+            # each once per process (cached on disk for later ones). All P·K pairs, one
+            # variant, would assemble and differentiate every mode at every step.
+            size = min(x.shape[0] * self.num_modes, 1 << (Q - 1).bit_length())
+            take = torch.arange(size, device=x.device)
+            take[Q:] = 0
+            pairs = (pairs[0][take], pairs[1][take])
+        point = pairs[0]
+        ctrl = control.select(point)
+        # Static shapes (a filter's K and batch do not change; the pairs are padded), the
+        # Python wrapper (the C++ one takes about 1.7 times as long to compile).
+        assemble = kernel(
+            _replica_problems, compiled=self.compiled, cpp_wrapper=False, dynamic=False
+        )
+        with torch.enable_grad():
+            delta = x.new_zeros(point.numel(), 1, D, D).requires_grad_()
+            moved, fields = assemble(
+                self.scene,
+                x.index_select(0, point),
+                delta,
+                slots,
+                q_robot=ctrl.q_robot,
+                v_robot=ctrl.v_robot,
+                robot_base=ctrl.robot_base,
+                base_twist=ctrl.base_twist,
+                q_kinematic=ctrl.q_kinematic,
+                v_kinematic=ctrl.v_kinematic,
+            )
+            # Eager: compiled, its backward through the Tikhonov iterations' LU solves runs as
+            # triangular solves on every replica's full system, slower than eager with many
+            # modes (BarrettHand, K = 16: 133 ms per backward against ~40 ms eager).
+            local = _tangent_steps(
+                self,
+                moved,
+                fields,
+                problem.phi[pairs][:, None],
+                modes[pairs][:, None],
+                chart[pairs][:, None],
+                solution.pn[pairs][:, None],
+                solution.pt[pairs][:, None],
+            )
+            (F,) = torch.autograd.grad(local.diagonal(dim1=-2, dim2=-1).sum(), delta)
+        return F[:Q, 0], local.detach()[:Q, 0, 0]
 
     def _closed_gaps(self, problem: ContactProblem, modes: Tensor) -> ContactProblem:
         """The problem of the consistency check: the gaps of the mode's contacts closed up to
@@ -980,7 +1027,7 @@ def _replica_problems(
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """The points ``retract(x, δ)`` ``(P, K, 12, 13)`` and the fields of their contact
     problems on the acting ``slots``, batch ``(P, K, 12)`` (``ContactProblem.unchecked``'s
-    keywords): the first differentiated part of :meth:`SpatialContactModel._linearize`.
+    keywords): the first differentiated part of ``SpatialContactModel._solved_jacobians``.
 
     Args:
         scene: the model's scene.
@@ -1014,7 +1061,7 @@ def _tangent_steps(
     """``local(chart, f_k(retract(x, δ)))`` ``(P, K, 12, 12)``: every mode's step from the
     replicas, in the tangent at the chart, the mode solves warm-started at the converged
     impulses at ``x`` (see the class docstring): the second differentiated part of
-    :meth:`SpatialContactModel._linearize` (eager in both modes).
+    ``SpatialContactModel._solved_jacobians`` (eager in both modes).
 
     Args:
         model: the model (its scene).
