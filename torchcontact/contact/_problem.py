@@ -5,7 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar, cast
 
 import torch
 from torch import Tensor
@@ -17,6 +17,8 @@ from torchcontact._checks import (
     check_positive,
     describe,
 )
+
+_T = TypeVar("_T")
 
 _TENSOR_FIELDS = ("M", "v", "f", "Jn", "Jt", "phi", "mu", "mask", "bn", "bt")
 #: Number of trailing (non-batch) dimensions of each tensor field.
@@ -149,7 +151,7 @@ class ContactProblem:
             "v_free", lambda: self.v + self.h * self.mass_solve(self.f.unsqueeze(-1)).squeeze(-1)
         )
 
-    def cached(self, name: str, compute: Callable[[], Any]) -> Any:
+    def cached(self, name: str, compute: Callable[[], _T]) -> _T:
         """``compute()``, kept on the problem under ``name`` and returned again on later calls.
 
         For derived quantities that several steps of a solve need (the Cholesky factor of
@@ -172,7 +174,7 @@ class ContactProblem:
             object.__setattr__(self, "_cache", cache)
         if name not in cache:
             cache[name] = compute()
-        return cache[name]
+        return cast(_T, cache[name])
 
     def mass_solve(self, rhs: Tensor) -> Tensor:
         """``M⁻¹ rhs`` by Cholesky factorization, differentiable.
