@@ -66,7 +66,8 @@ def tikhonov_system(A: Tensor, shift: Tensor, *, products: bool = False) -> Tikh
     Returns:
         The :class:`TikhonovSystem`.
     """
-    regularised = A + torch.diag_embed(shift)
+    regularised = A.clone()
+    regularised.diagonal(dim1=-2, dim2=-1).add_(shift)
     LU, pivots = _lu_factor(regularised)
     R = torch.linalg.lu_solve(LU, pivots, torch.diag_embed(shift)) if products else None
     return TikhonovSystem(LU=LU, pivots=pivots, shift=shift.unsqueeze(-1), R=R)
