@@ -17,7 +17,12 @@ from torchcontact.contact._lcp import (
 )
 from torchcontact.contact._problem import ContactProblem
 from torchcontact.contact._solution import Solution, SolveStatus
-from torchcontact.contact._tikhonov import iterated_tikhonov, tikhonov_system
+from torchcontact.contact._tikhonov import (
+    ELIMINATION_MAX_ORDER,
+    iterated_tikhonov,
+    tikhonov_by_elimination,
+    tikhonov_system,
+)
 
 #: Iterated-Tikhonov refinements of the constraint solve (see :func:`solve_mode`).
 SOLVE_MODE_REFINEMENTS = 5
@@ -448,7 +453,18 @@ def _iterated_tikhonov(
     diagonal_scale = A.diagonal(dim1=-2, dim2=-1).abs().amax(dim=-1, keepdim=True)
     if diagonal_floor is not None:
         diagonal_scale = torch.maximum(diagonal_scale, diagonal_floor)
-    system = tikhonov_system(A, eps * diagonal_scale * weights)
+    shift = eps * diagonal_scale * weights
+    if sync_free and torch.compiler.is_compiling() and A.shape[-1] <= ELIMINATION_MAX_ORDER:
+        x = tikhonov_by_elimination(
+            A,
+            shift,
+            b.unsqueeze(-1),
+            refinements=refinements,
+            start=None if start is None else start.unsqueeze(-1),
+        )
+        return x.squeeze(-1)
+    # Without host synchronisation every iteration runs: as products, after one more solve.
+    system = tikhonov_system(A, shift, products=sync_free)
     x = iterated_tikhonov(
         system,
         b.unsqueeze(-1),
