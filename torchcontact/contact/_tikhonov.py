@@ -71,11 +71,20 @@ def tikhonov_system(A: Tensor, shift: Tensor, *, products: bool = False) -> Tikh
     Returns:
         The :class:`TikhonovSystem`.
     """
-    regularised = A.clone()
-    regularised.diagonal(dim1=-2, dim2=-1).add_(shift)
+    regularised = _regularised(A, shift)
     LU, pivots = _lu_factor(regularised)
     R = torch.linalg.lu_solve(LU, pivots, torch.diag_embed(shift)) if products else None
     return TikhonovSystem(LU=LU, pivots=pivots, shift=shift.unsqueeze(-1), R=R)
+
+
+def _regularised(A: Tensor, shift: Tensor) -> Tensor:
+    """``A + diag(shift)`` for ``A (*B, m, m)`` and ``shift (*B', m)`` (batches broadcast),
+    written on a copy's diagonal (no ``(m, m)`` temporary for ``diag(shift)``)."""
+    m = A.shape[-1]
+    batch = torch.broadcast_shapes(A.shape[:-2], shift.shape[:-1])
+    regularised = A.expand(*batch, m, m).clone()
+    regularised.diagonal(dim1=-2, dim2=-1).add_(shift)
+    return regularised
 
 
 def _lu_factor(matrices: Tensor) -> tuple[Tensor, Tensor]:
@@ -221,9 +230,11 @@ def tikhonov_by_elimination(
     Returns:
         ``(*B, m, 1)`` the iterate ``x_refinements``.
     """
-    regularised = A.clone()
-    regularised.diagonal(dim1=-2, dim2=-1).add_(shift)
-    solved = solve_by_elimination(regularised, torch.cat([b, torch.diag_embed(shift)], dim=-1))
+    regularised = _regularised(A, shift)
+    m = regularised.shape[-1]
+    batch = torch.broadcast_shapes(regularised.shape[:-2], b.shape[:-2])
+    rhs = torch.cat([b.expand(*batch, m, 1), torch.diag_embed(shift).expand(*batch, m, m)], dim=-1)
+    solved = solve_by_elimination(regularised, rhs)
     y, R = solved[..., :1], solved[..., 1:]
 
     def step(x: Tensor) -> Tensor:
