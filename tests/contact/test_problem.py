@@ -120,3 +120,26 @@ def test_unchecked_construction_broadcasts_like_the_checked_one() -> None:
     for name in ("M", "v", "f", "Jn", "Jt", "phi", "mu", "mask", "bn", "bt"):
         assert getattr(unchecked, name).shape == getattr(checked, name).shape, name
     assert unchecked.h == checked.h
+
+
+def test_quantities_kept_on_a_problem_follow_gradients_and_grad_mode() -> None:
+    """``v_free`` (kept on the problem when no field requires grad) against its closed form
+    ``v + h M⁻¹ f`` for a diagonal ``M``, with and without grad mode; with a field that
+    requires grad it is recomputed on every call, so that two backward passes through it
+    both work (a graph kept on the problem would be freed by the first) and both give
+    ``∂ Σ v_free / ∂f = h / diag(M)``."""
+    q = torch.tensor([[0.0, 0.25, 0.0], [0.1, 0.3, 0.2]], dtype=torch.float64)
+    v = torch.tensor([[1.0, 0.0, 0.0], [0.0, -0.5, 0.1]], dtype=torch.float64)
+    problem = box_problem(q=q, v=v)
+    diagonal = problem.M.diagonal(dim1=-2, dim2=-1)
+    expected = v + problem.h * problem.f / diagonal
+    with torch.no_grad():
+        torch.testing.assert_close(problem.v_free(), expected, rtol=1e-14, atol=0.0)
+    torch.testing.assert_close(problem.v_free(), expected, rtol=1e-14, atol=0.0)
+
+    f = problem.f.clone().requires_grad_(True)
+    fields = {name: getattr(problem, name) for name in ("M", "v", "Jn", "Jt", "phi", "mu")}
+    grad_problem = ContactProblem(**fields, f=f, h=problem.h)
+    for _ in range(2):
+        (grad,) = torch.autograd.grad(grad_problem.v_free().sum(), f)
+        torch.testing.assert_close(grad, problem.h / diagonal, rtol=1e-14, atol=0.0)

@@ -186,31 +186,70 @@ def problem_scales(
     Both are floored at the dtype's ``tiny`` (a problem at rest with no force has scale 0).
     ``v_free`` (``(*B, n)``, :meth:`ContactProblem.v_free`) is computed when not given.
     """
+    gap_rate, slip = velocity_terms(problem, v_next)
+    return _scales(
+        problem, v_next=v_next, pn=pn, pt=pt, gap_rate=gap_rate, slip=slip, v_free=v_free
+    )
+
+
+def _scales(
+    problem: ContactProblem,
+    *,
+    v_next: Tensor,
+    pn: Tensor,
+    pt: Tensor,
+    gap_rate: Tensor,
+    slip: Tensor,
+    v_free: Tensor | None,
+) -> tuple[Tensor, Tensor]:
+    """:func:`problem_scales` from the constraint velocities at ``v_next``
+    (:func:`velocity_terms`), which the tests against the scales need too.
+
+    The constraint velocities the impulses cause are those at ``v_next`` less those at
+    ``v_free``; every term that depends on the problem alone is computed once per problem
+    (:meth:`ContactProblem.cached`) unless the caller passes its own ``v_free``.
+    """
     tiny = torch.finfo(problem.dtype).tiny
-    v_free = problem.v_free() if v_free is None else v_free
-    K, D = problem.num_slots, problem.num_directions
-    # [v_free, v⁺ − v_free] as two columns: one product per row block gives both terms.
-    columns = torch.stack([v_free, v_next - v_free], dim=-1)  # (*B, n, 2)
-    normal = (problem.Jn @ columns).abs().amax(dim=-1)
-    tangent = (problem.Jt.flatten(-3, -2) @ columns).abs().amax(dim=-1)
-    known = torch.maximum(problem.b_normal.abs(), problem.b_tangent.abs().amax(dim=-1))
-    per_slot = torch.maximum(normal, tangent.unflatten(-1, (K, D)).amax(dim=-1))
-    per_slot = torch.maximum(per_slot, known)
-    per_slot = torch.maximum(per_slot, (-problem.phi / problem.h).clamp(min=0.0))
+    if v_free is None:
+        v_free = problem.v_free()
+        free = problem.cached("free_terms", lambda: _free_terms(problem, v_free))
+    else:
+        free = _free_terms(problem, v_free)
+    free_gap, free_slip, slot_scale, impulse_floor = free
+    caused = torch.maximum((gap_rate - free_gap).abs(), (slip - free_slip).abs().amax(dim=-1))
+    per_slot = torch.maximum(slot_scale, caused)
     per_slot = torch.where(problem.slot_mask, per_slot, torch.zeros((), dtype=per_slot.dtype))
     velocity = torch.nn.functional.pad(per_slot, (0, 1)).amax(dim=-1, keepdim=True)
-    # |M v| and |M (v⁺ − v_free)| (= |Jᵀ p| by the Newton–Euler row) in one product.
-    momenta = problem.M @ torch.stack([problem.v, columns[..., 1]], dim=-1)  # (*B, n, 2)
-    impulse = torch.cat(
-        [
-            momenta.abs().flatten(-2),
-            (problem.h * problem.f).abs(),
-            pn.abs(),
-            pt.flatten(-2).abs(),
-        ],
-        dim=-1,
-    ).amax(dim=-1, keepdim=True)
+    # |M (v⁺ − v_free)| (= |Jᵀ p| by the Newton–Euler row).
+    momentum = (problem.M @ (v_next - v_free).unsqueeze(-1)).squeeze(-1)
+    impulse = torch.cat([momentum.abs(), pn.abs(), pt.flatten(-2).abs()], dim=-1)
+    impulse = torch.maximum(impulse.amax(dim=-1, keepdim=True), impulse_floor)
     return velocity.clamp(min=tiny), impulse.clamp(min=tiny)
+
+
+def _free_terms(problem: ContactProblem, v_free: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The terms of :func:`problem_scales` that do not depend on the candidate solution.
+
+    Returns:
+        The constraint velocities at ``v_free``, ``(*B, K)`` ``Jn v_free + bn + φ/h`` and
+        ``(*B, K, D)`` ``Jt v_free + bt``; the ``(*B, K)`` per-slot velocity scale without the
+        impulses' share (``|J v_free|``, ``|b|``, ``−φ/h`` where penetrating); the
+        ``(*B, 1)`` impulse scale without the solution's share (``|M v|``, ``|h f|``).
+    """
+    Jn_v = (problem.Jn @ v_free.unsqueeze(-1)).squeeze(-1)
+    Jt_v = (problem.Jt @ v_free.unsqueeze(-1).unsqueeze(-3)).squeeze(-1)
+    known = torch.maximum(problem.b_normal.abs(), problem.b_tangent.abs().amax(dim=-1))
+    slot_scale = torch.maximum(Jn_v.abs(), Jt_v.abs().amax(dim=-1))
+    slot_scale = torch.maximum(slot_scale, known)
+    slot_scale = torch.maximum(slot_scale, (-problem.phi / problem.h).clamp(min=0.0))
+    momentum = (problem.M @ problem.v.unsqueeze(-1)).squeeze(-1)
+    impulse_floor = torch.cat([momentum.abs(), (problem.h * problem.f).abs()], dim=-1)
+    return (
+        Jn_v + problem.b_normal + problem.phi / problem.h,
+        Jt_v + problem.b_tangent,
+        slot_scale,
+        impulse_floor.amax(dim=-1, keepdim=True),
+    )
 
 
 def relative_residual(
@@ -238,10 +277,10 @@ def relative_residual(
     Returns:
         ``(*B,)`` relative residual, zero exactly at a solution.
     """
-    velocity_scale, impulse_scale = problem_scales(
-        problem, v_next=v_next, pn=pn, pt=pt, v_free=v_free
-    )
     gap_rate, slip = velocity_terms(problem, v_next)
+    velocity_scale, impulse_scale = _scales(
+        problem, v_next=v_next, pn=pn, pt=pt, gap_rate=gap_rate, slip=slip, v_free=v_free
+    )
     gap_rate, slip = gap_rate / velocity_scale, slip / velocity_scale.unsqueeze(-1)
     pn, pt = pn / impulse_scale, pt / impulse_scale.unsqueeze(-1)
     sigma = (-slip.amin(dim=-1)).clamp(min=0.0)
@@ -285,8 +324,10 @@ def contact_mode(
     tol = 10 * default_tolerance(problem.dtype) if atol is None else atol
     pt = torch.zeros_like(problem.b_tangent) if pt is None else pt
     D = problem.num_directions
-    velocity_scale, impulse_scale = problem_scales(problem, v_next=v_next, pn=pn, pt=pt)
-    _, slip = velocity_terms(problem, v_next)
+    gap_rate, slip = velocity_terms(problem, v_next)
+    velocity_scale, impulse_scale = _scales(
+        problem, v_next=v_next, pn=pn, pt=pt, gap_rate=gap_rate, slip=slip, v_free=None
+    )
     active = problem.slot_mask & (pn > tol * impulse_scale)
     sticking = slip.abs().amax(dim=-1) <= tol * velocity_scale
     direction = slip.argmin(dim=-1)
@@ -363,12 +404,12 @@ def consistent_with_mode(
     Returns:
         ``(*B,)`` bool, ``True`` where the solution is consistent with its modes.
     """
-    velocity_scale, impulse_scale = problem_scales(
-        problem, v_next=v_next, pn=pn, pt=pt, v_free=v_free
+    gap_rate, slip = velocity_terms(problem, v_next)
+    velocity_scale, impulse_scale = _scales(
+        problem, v_next=v_next, pn=pn, pt=pt, gap_rate=gap_rate, slip=slip, v_free=v_free
     )
     v_tol, p_tol = atol * velocity_scale, atol * impulse_scale
     p_tol_d = p_tol.unsqueeze(-1)
-    gap_rate, slip = velocity_terms(problem, v_next)
     friction_total = pt.sum(dim=-1)
     mu_pn = problem.mu * pn
     mode = mode.expand(pn.shape)

@@ -17,7 +17,12 @@ from torchcontact.contact._lcp import (
 )
 from torchcontact.contact._problem import ContactProblem
 from torchcontact.contact._solution import Solution, SolveStatus
-from torchcontact.contact._tikhonov import iterated_tikhonov, tikhonov_system
+from torchcontact.contact._tikhonov import (
+    ELIMINATION_MAX_ORDER,
+    iterated_tikhonov,
+    tikhonov_by_elimination,
+    tikhonov_system,
+)
 
 #: Iterated-Tikhonov refinements of the constraint solve (see :func:`solve_mode`).
 SOLVE_MODE_REFINEMENTS = 5
@@ -145,7 +150,7 @@ def solve_mode_unchecked(
     """
     mask = problem.slot_mask
     mode = torch.where(mask, mode, torch.zeros_like(mode))
-    batch, n = problem.batch_shape, problem.num_dofs
+    batch = problem.batch_shape
     K, D, r = problem.num_slots, problem.num_directions, problem.num_tangents
     Jn, Jt, mu = problem.Jn, problem.Jt, problem.mu
 
@@ -154,7 +159,7 @@ def solve_mode_unchecked(
     sliding = is_sliding(mode)
     face = is_face_sliding(mode, num_directions=D)
     first, second = friction_pair(mode, num_directions=D)
-    Jt_first = Jt.gather(-2, first[..., None, None].expand(*batch, K, 1, n)).squeeze(-2)
+    Jt_first = _direction_rows(Jt, first)
     slide_mu = torch.where(sliding, mu, torch.zeros_like(mu))
     # Tangent rows of the unknowns λ (acting and constrained along the same rows): the basis
     # when sticking; on a face, row 0 is the difference of its two directions.
@@ -162,7 +167,7 @@ def solve_mode_unchecked(
     tangent_target = -problem.b_tangent[..., :r]
     tangent_active = sticking.unsqueeze(-1).expand(*batch, K, r)
     if D > 2:
-        Jt_second = Jt.gather(-2, second[..., None, None].expand(*batch, K, 1, n)).squeeze(-2)
+        Jt_second = _direction_rows(Jt, second)
         G_normal = Jn + (0.5 * slide_mu).unsqueeze(-1) * (Jt_first + Jt_second)
         on_face_row = face.unsqueeze(-1) & (torch.arange(r, device=problem.device) == 0)
         tangent_rows = torch.where(
@@ -206,7 +211,7 @@ def solve_mode_unchecked(
     Minv_GT = problem.mass_solve(G.transpose(-1, -2))
     rhs = target - (C @ v_free.unsqueeze(-1)).squeeze(-1)
     A = C @ Minv_GT
-    A = A + torch.diag_embed((~rows_active).to(problem.dtype))
+    A.diagonal(dim1=-2, dim2=-1).add_((~rows_active).to(problem.dtype))
     b = torch.where(rows_active, rhs, zero)
     unit_floor = has_unit_rows.to(problem.dtype)
     # With initial impulses the iteration stays at their split: its fixed points are the
@@ -254,10 +259,10 @@ def solve_mode_unchecked(
     pt_stick = _bracket_decomposition(Jt, tangential, sticking)
     pt = torch.where(sticking.unsqueeze(-1), pt_stick, pt_slide)
 
-    equality_error = _largest(((A @ x_rows.unsqueeze(-1)).squeeze(-1) - b).abs())
+    equality_error = _largest((A @ x_rows.unsqueeze(-1)).squeeze(-1) - b)
     # Relative to the system's own terms: the same test at every scale of h, M and v.
-    largest_A = torch.maximum(_largest(A.abs().flatten(-2)), unit_floor.squeeze(-1))
-    scale = _largest(b.abs()) + largest_A * _largest(x.abs())
+    largest_A = torch.maximum(_largest(A.flatten(-2)), unit_floor.squeeze(-1))
+    scale = _largest(b) + largest_A * _largest(x)
     scale = scale.clamp(min=torch.finfo(problem.dtype).tiny)
     finite = torch.isfinite(v_next).all(dim=-1) & torch.isfinite(pt).all(dim=(-1, -2))
     tolerance = default_tolerance(problem.dtype)
@@ -386,11 +391,29 @@ def _needed_rows(rows_active: Tensor) -> Tensor | None:
     return order[..., :width]
 
 
+def _direction_rows(Jt: Tensor, direction: Tensor) -> Tensor:
+    """``(*B, K, n)`` the row ``Jt[..., k, direction[..., k], :]`` of every slot.
+
+    Args:
+        Jt: ``(*B, K, D, n)`` friction-direction rows.
+        direction: ``(*B, K)`` long, a direction per slot.
+    """
+    *batch, K, D, n = Jt.shape
+    if not Jt.is_contiguous():
+        index = direction[..., None, None].expand(*batch, K, 1, n)
+        return Jt.gather(-2, index).squeeze(-2)
+    # A contiguous tensor's rows picked from its flattened rows: several times cheaper than
+    # gather on a CPU.
+    start = torch.arange(0, direction.numel() * D, D, device=Jt.device).view(direction.shape)
+    rows = Jt.reshape(-1, n).index_select(0, (start + direction).flatten())
+    return rows.view(*batch, K, n)
+
+
 def _largest(values: Tensor) -> Tensor:
-    """``(*B,)`` largest of non-negative ``values (*B, m)``, zero when ``m == 0``."""
+    """``(*B,)`` largest magnitude of ``values (*B, m)``, zero when ``m == 0``."""
     if values.shape[-1] == 0:
         return values.sum(dim=-1)
-    return values.amax(dim=-1)
+    return values.abs().amax(dim=-1)
 
 
 def _iterated_tikhonov(
@@ -430,7 +453,18 @@ def _iterated_tikhonov(
     diagonal_scale = A.diagonal(dim1=-2, dim2=-1).abs().amax(dim=-1, keepdim=True)
     if diagonal_floor is not None:
         diagonal_scale = torch.maximum(diagonal_scale, diagonal_floor)
-    system = tikhonov_system(A, eps * diagonal_scale * weights)
+    shift = eps * diagonal_scale * weights
+    if sync_free and torch.compiler.is_compiling() and A.shape[-1] <= ELIMINATION_MAX_ORDER:
+        x = tikhonov_by_elimination(
+            A,
+            shift,
+            b.unsqueeze(-1),
+            refinements=refinements,
+            start=None if start is None else start.unsqueeze(-1),
+        )
+        return x.squeeze(-1)
+    # Without host synchronisation every iteration runs: as products, after one more solve.
+    system = tikhonov_system(A, shift, products=sync_free)
     x = iterated_tikhonov(
         system,
         b.unsqueeze(-1),

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar, cast
 
 import torch
 from torch import Tensor
@@ -16,6 +17,8 @@ from torchcontact._checks import (
     check_positive,
     describe,
 )
+
+_T = TypeVar("_T")
 
 _TENSOR_FIELDS = ("M", "v", "f", "Jn", "Jt", "phi", "mu", "mask", "bn", "bt")
 #: Number of trailing (non-batch) dimensions of each tensor field.
@@ -142,8 +145,36 @@ class ContactProblem:
         return self.M.device
 
     def v_free(self) -> Tensor:
-        """``(*B, n)`` contact-free velocity ``v + h M⁻¹ f`` (Cholesky solve)."""
-        return self.v + self.h * self.mass_solve(self.f.unsqueeze(-1)).squeeze(-1)
+        """``(*B, n)`` contact-free velocity ``v + h M⁻¹ f`` (Cholesky solve; computed once
+        per problem where no field requires grad)."""
+        return self.cached(
+            "v_free", lambda: self.v + self.h * self.mass_solve(self.f.unsqueeze(-1)).squeeze(-1)
+        )
+
+    def cached(self, name: str, compute: Callable[[], _T]) -> _T:
+        """``compute()``, kept on the problem under ``name`` and returned again on later calls.
+
+        For derived quantities that several steps of a solve need (the Cholesky factor of
+        ``M``, ``v_free``, the constraint velocities at ``v_free``). A problem is immutable, so
+        they stay valid; they are kept only where no field requires grad (a graph kept on
+        the problem would be freed by the first backward pass through it) and outside
+        :func:`torch.compile`'s tracing.
+
+        Args:
+            name: the quantity's key, one per ``compute``.
+            compute: computes it from the problem's fields.
+        """
+        if torch.compiler.is_compiling() or any(
+            getattr(self, field).requires_grad for field in _TENSOR_FIELDS
+        ):
+            return compute()
+        cache = self.__dict__.get("_cache")
+        if cache is None:
+            cache = {}
+            object.__setattr__(self, "_cache", cache)
+        if name not in cache:
+            cache[name] = compute()
+        return cast(_T, cache[name])
 
     def mass_solve(self, rhs: Tensor) -> Tensor:
         """``M⁻¹ rhs`` by Cholesky factorization, differentiable.
@@ -161,8 +192,10 @@ class ContactProblem:
         M, batch = self.M, self.batch_shape
         shared = bool(batch) and 0 not in batch and all(s == 0 for s in M.stride()[: len(batch)])
         if not shared:
-            return torch.cholesky_solve(rhs, torch.linalg.cholesky(M))
-        L = torch.linalg.cholesky(M[(0,) * len(batch)])
+            return torch.cholesky_solve(
+                rhs, self.cached("mass_factor", lambda: torch.linalg.cholesky(M))
+            )
+        L = self.cached("mass_factor", lambda: torch.linalg.cholesky(M[(0,) * len(batch)]))
         rhs = rhs.expand(*batch, *rhs.shape[-2:])
         n, k = rhs.shape[-2:]
         solved = torch.cholesky_solve(rhs.movedim(-2, 0).reshape(n, -1), L)

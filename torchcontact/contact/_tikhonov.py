@@ -22,6 +22,11 @@ SETTLED_MIN_BATCH = 64
 LU_SEQUENTIAL_MIN_ORDER = 64
 
 
+#: Largest order that :func:`tikhonov_by_elimination` is meant for: its code grows with the
+#: cube of the order (every column's elimination is written out).
+ELIMINATION_MAX_ORDER = 16
+
+
 @dataclass(frozen=True, eq=False)
 class TikhonovSystem:
     r"""A square system ``A x = b`` prepared for iterated Tikhonov regularisation.
@@ -66,10 +71,20 @@ def tikhonov_system(A: Tensor, shift: Tensor, *, products: bool = False) -> Tikh
     Returns:
         The :class:`TikhonovSystem`.
     """
-    regularised = A + torch.diag_embed(shift)
+    regularised = _regularised(A, shift)
     LU, pivots = _lu_factor(regularised)
     R = torch.linalg.lu_solve(LU, pivots, torch.diag_embed(shift)) if products else None
     return TikhonovSystem(LU=LU, pivots=pivots, shift=shift.unsqueeze(-1), R=R)
+
+
+def _regularised(A: Tensor, shift: Tensor) -> Tensor:
+    """``A + diag(shift)`` for ``A (*B, m, m)`` and ``shift (*B', m)`` (batches broadcast),
+    written on a copy's diagonal (no ``(m, m)`` temporary for ``diag(shift)``)."""
+    m = A.shape[-1]
+    batch = torch.broadcast_shapes(A.shape[:-2], shift.shape[:-1])
+    regularised = A.expand(*batch, m, m).clone()
+    regularised.diagonal(dim1=-2, dim2=-1).add_(shift)
+    return regularised
 
 
 def _lu_factor(matrices: Tensor) -> tuple[Tensor, Tensor]:
@@ -153,3 +168,80 @@ def _settled(x: Tensor, previous: Tensor) -> Tensor:
     size = x.abs().amax(dim=(-2, -1), keepdim=True)
     resolution = torch.finfo(x.dtype).eps ** 0.75
     return torch.le((x - previous).abs(), resolution * size).all()
+
+
+def solve_by_elimination(matrices: Tensor, rhs: Tensor) -> Tensor:
+    """Solve ``matrices X = rhs`` by Gaussian elimination with partial pivoting, written out.
+
+    The elimination runs column by column with every operation on the whole batch (a row
+    exchange is a gather, an elimination step a broadcast update), then back substitution
+    row by row: under :func:`torch.compile` it fuses into a few loops over the batch, where
+    ``torch.linalg.lu_factor`` and ``lu_solve`` stay library calls (one per call). The
+    arithmetic is LAPACK's ``getrf`` + ``getrs`` on the augmented matrix: backward stable.
+    For small orders (up to :data:`ELIMINATION_MAX_ORDER`): the code grows with the cube of
+    the order. A zero pivot (a singular matrix) gives non-finite entries.
+
+    Args:
+        matrices: ``(*B, m, m)`` nonsingular matrices.
+        rhs: ``(*B', m, r)`` right-hand sides (``*B'`` broadcasts against ``*B``).
+
+    Returns:
+        ``(*B'', m, r)`` the solutions.
+    """
+    m, r = matrices.shape[-1], rhs.shape[-1]
+    batch = torch.broadcast_shapes(matrices.shape[:-2], rhs.shape[:-2])
+    augmented = torch.cat(
+        [matrices.expand(*batch, m, m), rhs.expand(*batch, m, r)], dim=-1
+    )  # (*B'', m, m + r)
+    rows = torch.arange(m, device=matrices.device)
+    for k in range(m):
+        pivot = augmented[..., k:, k].abs().argmax(dim=-1, keepdim=True) + k  # (*B'', 1)
+        exchange = torch.where(rows == k, pivot, torch.where(rows == pivot, k, rows))
+        augmented = augmented.gather(-2, exchange.unsqueeze(-1).expand(augmented.shape))
+        head = augmented[..., k : k + 1, :]
+        factor = augmented[..., k : k + 1] / head[..., k : k + 1]  # (*B'', m, 1)
+        factor = torch.where((rows > k).unsqueeze(-1), factor, torch.zeros_like(factor))
+        augmented = augmented - factor * head
+    solution: list[Tensor] = []  # rows m - 1, m - 2, ..., 0
+    for k in reversed(range(m)):
+        row = augmented[..., k, m:]
+        for j, known in zip(range(m - 1, k, -1), solution, strict=True):
+            row = row - augmented[..., k, j : j + 1] * known
+        solution.append(row / augmented[..., k, k : k + 1])
+    return torch.stack(solution[::-1], dim=-2)
+
+
+def tikhonov_by_elimination(
+    A: Tensor, shift: Tensor, b: Tensor, *, refinements: int, start: Tensor | None = None
+) -> Tensor:
+    """:func:`iterated_tikhonov` of ``A + diag(shift)`` in the product form, every solve by
+    :func:`solve_by_elimination` (no library call: for compiled code on small systems).
+
+    ``y = (A + S)⁻¹ b`` and ``R = (A + S)⁻¹ S`` come from one elimination with ``[b, S]`` as
+    the right-hand side; each iteration is ``x ↦ y + R x``. All ``refinements`` run.
+
+    Args:
+        A: ``(*B, m, m)`` system matrices, ``m <= ELIMINATION_MAX_ORDER``.
+        shift: ``(*B, m)`` positive diagonal ``s`` of the regularisation ``S``.
+        b: ``(*B, m, 1)`` right-hand sides as a column.
+        refinements: number of iterations, ``>= 1``.
+        start: ``(*B, m, 1)`` starting point ``x_0`` (a constant: detached), default zeros.
+
+    Returns:
+        ``(*B, m, 1)`` the iterate ``x_refinements``.
+    """
+    regularised = _regularised(A, shift)
+    m = regularised.shape[-1]
+    batch = torch.broadcast_shapes(regularised.shape[:-2], b.shape[:-2])
+    rhs = torch.cat([b.expand(*batch, m, 1), torch.diag_embed(shift).expand(*batch, m, m)], dim=-1)
+    solved = solve_by_elimination(regularised, rhs)
+    y, R = solved[..., :1], solved[..., 1:]
+
+    def step(x: Tensor) -> Tensor:
+        # R x as a broadcast product and a sum, which compiles into the surrounding loop.
+        return y + (R * x.transpose(-1, -2)).sum(dim=-1, keepdim=True)
+
+    x = y if start is None else step(start.detach())
+    for _ in range(refinements - 1):
+        x = step(x)
+    return x

@@ -182,6 +182,9 @@ def tangent_directions(normal: Tensor, num_directions: int) -> Tensor:
     angles = torch.arange(half, dtype=normal.dtype, device=normal.device)
     angles = angles * (2.0 * math.pi / num_directions)
     weights = torch.stack([torch.cos(angles), torch.sin(angles)], dim=-1)  # (D/2, 2)
-    first: Tensor = weights @ tangent_basis(normal)
+    basis = tangent_basis(normal)
+    # cos t₁ + sin t₂ as two broadcast products (a batched product of 2-column matrices
+    # costs several times more on a CPU).
+    first = weights[:, :1] * basis[..., :1, :] + weights[:, 1:] * basis[..., 1:, :]
     # The opposite half negated exactly, not from cos(θ + π) (which rounds differently).
     return torch.cat([first, -first], dim=-2)
