@@ -14,8 +14,10 @@ with ``compiled=True``) compiles the contact assembly of its tangent replicas (a
 forward kinematics, every slot's geometry) as one graph; AOTAutograd compiles its backward.
 It has no host synchronisation inside: the checks skip themselves in a traced region (the
 model validates at its public methods), data-dependent branches run masked. Its shapes are
-static (``dynamic=False``: a filter's modes and batch do not change) and it uses Inductor's
-Python wrapper, which compiles this large graph faster. The mode solves stay eager: compiled,
+static (``dynamic=False``): the replicas are those of the modes solved at the mean, padded to
+the next power of two, so a filter compiles one graph per power it reaches (at most
+``log2(K) + 1`` per batch size). It uses Inductor's Python wrapper, which compiles this large
+graph faster. The mode solves stay eager: compiled,
 the backward of their LU solves runs as triangular solves on full systems, slower than eager.
 
 The simulator's kernel (:class:`~torchcontact.sim.Simulator` with ``compiled=True``) is a
