@@ -16,8 +16,8 @@ It has no host synchronisation inside: the checks skip themselves in a traced re
 model validates at its public methods), data-dependent branches run masked. Its shapes are
 static (``dynamic=False``): the replicas are those of the modes solved at the mean, padded to
 the next power of two, so a filter compiles one graph per power it reaches (at most
-``log2(P K) + 1`` for P points and K modes). It uses Inductor's Python wrapper, which compiles this large
-graph faster. The mode solves stay eager: compiled,
+``log2(P K) + 1`` for P points and K modes). It uses Inductor's Python wrapper, which
+compiles this large graph faster. The mode solves stay eager: compiled,
 the backward of their LU solves runs as triangular solves on full systems, slower than eager.
 
 The simulator's kernel (:class:`~torchcontact.sim.Simulator` with ``compiled=True``) is a
