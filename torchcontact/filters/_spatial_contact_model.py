@@ -560,14 +560,31 @@ class SpatialContactModel(ContactModelFields):
             return self.modes.to(x.device).expand(*batch, K, S)
         ctrl = check_control(self.scene, control, batch, device=self.device)
         flat = x.reshape(-1, STATE_DIM).detach().to(torch.float64)
-        slots = self._acting_slots.to(x.device)
-        modes = self.modes.to(x.device).index_select(1, slots).expand(flat.shape[0], K, -1)
-        with torch.no_grad():
-            problem = _select_slots(robot_contact_problem(self.scene, flat, ctrl)[0], slots)
-            resolved, _ = self._resolved(_per_mode(problem, K), modes, slots)
+        _, resolved, _, slots = self._modes_at(flat, ctrl)
         out = torch.zeros(flat.shape[0], K, S, dtype=torch.long, device=x.device)
         out[..., slots] = resolved
         return out.reshape(*batch, K, S)
+
+    def _modes_at(
+        self, x: Tensor, control: _Control
+    ) -> tuple[ContactProblem, Tensor, Tensor, Tensor]:
+        """At ``x (P, 13)``: the contact problem on the slots that some mode activates, per
+        mode ``(P, K)``; every mode's slots there ``(P, K, S_a)`` (resolved with
+        :attr:`resolve_slots`); ``(P, K)`` bool, the mode is reachable there; and the acting
+        slots ``(S_a,)``. Eager, the assembly also reads the scene's bodies into the
+        simulator's cached layout before the compiled replicas' (building it there would split
+        the graph)."""
+        P, K = x.shape[0], self.num_modes
+        slots = self._acting_slots.to(x.device)
+        modes = self.modes.to(x.device).index_select(1, slots).expand(P, K, -1)
+        with torch.no_grad():
+            at_x = _per_mode(
+                _select_slots(robot_contact_problem(self.scene, x, control)[0], slots), K
+            )
+            reachable = torch.ones(P, K, dtype=torch.bool, device=x.device)
+            if self.resolve_slots and slots.numel() > 0:
+                modes, reachable = self._resolved(at_x, modes, slots)
+        return at_x, modes, reachable, slots
 
     def _linearize(
         self, x: Tensor, control: _Control, chart_mode: Tensor | None = None
@@ -586,18 +603,9 @@ class SpatialContactModel(ContactModelFields):
         eagerly.
         """
         P, K, D = x.shape[0], self.num_modes, TANGENT_DIM
-        slots = self._acting_slots.to(x.device)
-        modes = self.modes.to(x.device).index_select(1, slots).expand(P, K, -1)
+        at_x, modes, reachable, slots = self._modes_at(x, control)
         with torch.no_grad():
-            # (P, K) at x with the gaps of each mode's contacts closed: the step and the check.
-            # Eager, this also reads the scene's bodies into the simulator's cached layout
-            # before the compiled replicas' assembly (building it there would split the graph).
-            at_x = _per_mode(
-                _select_slots(robot_contact_problem(self.scene, x, control)[0], slots), K
-            )
-            reachable = torch.ones(P, K, dtype=torch.bool, device=x.device)
-            if self.resolve_slots and slots.numel() > 0:
-                modes, reachable = self._resolved(at_x, modes, slots)
+            # (P, K) at x with the gaps of each mode's contacts closed: the step and the check
             problem = self._closed_gaps(at_x, modes)
             solution = solve_mode_unchecked(problem, modes)
             if self.inconsistency_penalty > 0:
