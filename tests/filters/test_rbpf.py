@@ -664,3 +664,126 @@ def test_transition_rows_are_validated(rows: torch.Tensor, match: str) -> None:
     belief = rbpf.init(_prior())
     with pytest.raises(ValueError, match=match):
         rbpf.step(belief, torch.tensor(problem.ys[0]))
+
+
+# --------------------------------------------------------------------------------------------
+# Per-particle log-weights of the children (a model that judges each particle's modes)
+
+
+@dataclass(frozen=True, eq=False, kw_only=True)
+class _ParticleWeightModel(LinearSwitchingModel):
+    """Child (i, k) weighted by exp(slope[k] · x̂_i), x̂_i particle i's filtered mean: not
+    normalized over k, so a particle's total weight changes with its state."""
+
+    slope: torch.Tensor  # (K, n)
+    mode_weight: torch.Tensor  # (K,) the same for every particle
+
+    def mode_dynamics(self, belief: RBPFBelief, control: object) -> ModeDynamics:
+        weight = torch.einsum("kn,...n->...k", self.slope, belief.gaussians.mean)
+        return replace(
+            super().mode_dynamics(belief, control),
+            particle_log_weight=weight,
+            mode_log_weight=self.mode_weight,
+        )
+
+
+def _enumerate_weighted(problem: Problem, slope: np.ndarray, steps: int) -> float:
+    """log Σ over every mode path of p(path, y_1:steps) Π_t exp(slope[k_t] · x̂_{t-1}), x̂ the
+    path's filtered mean before step t: what the all-modes RBPF with one particle per path
+    reports as its log-evidence."""
+    a = problem.arrays
+    log_t = np.log(a["transition"][0])
+
+    def visit(t: int, mode: int, m: np.ndarray, P: np.ndarray, log_p: float) -> list[float]:
+        if t == steps:
+            return [log_p]
+        out = []
+        for k in range(K):
+            m_k, P_k = ref.kf_predict(m, P, a["F"][k], a["c"][k], a["Q"][k])
+            m_k, P_k, ll = ref.kf_update(m_k, P_k, problem.ys[t], a["H"][k], a["d"][k], a["R"][k])
+            out += visit(t + 1, k, m_k, P_k, log_p + log_t[mode, k] + slope[k] @ m + ll)
+        return out
+
+    leaves = []
+    for k0 in range(K):
+        leaves += visit(0, k0, np.zeros(N_STATE), np.eye(N_STATE), math.log(a["initial"][k0]))
+    return float(np.logaddexp.reduce(np.array(leaves)))
+
+
+def test_particle_log_weight_equals_enumeration() -> None:
+    problem = _problem(seed=8)
+    slope = np.random.default_rng(22).normal(scale=0.8, size=(K, N_STATE))
+    steps = 4
+    fields = {k: torch.tensor(v, dtype=F64) for k, v in problem.arrays.items()}
+    fields["transition"] = fields["transition"][0]
+    zero = torch.zeros(K, dtype=F64)
+    model = _ParticleWeightModel(**fields, slope=torch.tensor(slope), mode_weight=zero)
+    rbpf = RBPF(model, K ** (steps + 1), proposal="all_modes")
+    belief = rbpf.init(_prior())
+    for t in range(steps):
+        belief = rbpf.step(belief, torch.tensor(problem.ys[t]))
+    exact = _enumerate_weighted(problem, slope, steps)
+    assert abs(belief.log_evidence.item() - exact) < 1e-10
+    # without the weights the evidence differs: they mattered
+    assert abs(_enumerate_weighted(problem, 0 * slope, steps) - exact) > 1e-2
+
+
+@pytest.mark.parametrize("proposal", ["bootstrap", "all_modes"])
+def test_particle_log_weight_shared_by_the_particles_is_the_mode_log_weight(proposal: str) -> None:
+    problem = _problem(seed=9)
+    fields = {k: torch.tensor(v, dtype=F64) for k, v in problem.arrays.items()}
+    fields["transition"] = fields["transition"][0]
+    weight = torch.tensor([0.0, -1.5, -math.inf], dtype=F64)  # mode 2 ruled out
+
+    @dataclass(frozen=True, eq=False, kw_only=True)
+    class Shared(LinearSwitchingModel):
+        def mode_dynamics(self, belief: RBPFBelief, control: object) -> ModeDynamics:
+            return replace(super().mode_dynamics(belief, control), mode_log_weight=weight)
+
+    @dataclass(frozen=True, eq=False, kw_only=True)
+    class PerParticle(LinearSwitchingModel):
+        def mode_dynamics(self, belief: RBPFBelief, control: object) -> ModeDynamics:
+            rows = weight.expand(*belief.modes.shape, K)  # (*B, N, K)
+            return replace(super().mode_dynamics(belief, control), particle_log_weight=rows)
+
+    models = (Shared(**fields), PerParticle(**fields))
+    results = []
+    for model in models:
+        rbpf = RBPF(model, 32, proposal=proposal)  # type: ignore[arg-type]
+        gen = torch.Generator().manual_seed(3)
+        torch.manual_seed(5)  # init draws from torch's default generator
+        belief = rbpf.init(_prior(), batch_shape=(4,))
+        for t in range(T):
+            belief = rbpf.step(belief, torch.tensor(problem.ys[t]), generator=gen)
+        results.append(belief)
+    shared, per_particle = results
+    torch.testing.assert_close(
+        per_particle.log_evidence, shared.log_evidence, rtol=1e-12, atol=1e-12
+    )
+    assert (per_particle.modes == shared.modes).all()  # integers
+    assert torch.isneginf(shared.log_weights[shared.modes == 2]).all()  # ruled out
+
+
+@pytest.mark.parametrize(
+    ("weight", "match"),
+    [
+        (torch.full((5, K), math.nan, dtype=F64), "particle_log_weight"),
+        (torch.full((5, K), math.inf, dtype=F64), "particle_log_weight"),
+        (torch.zeros(4, K, dtype=F64), "particle_log_weight"),
+        (torch.zeros(2, 5, K, dtype=F64), "broadcast"),
+    ],
+)
+def test_particle_log_weight_is_validated(weight: torch.Tensor, match: str) -> None:
+    problem = _problem(seed=7)
+
+    @dataclass(frozen=True, eq=False, kw_only=True)
+    class Fixed(LinearSwitchingModel):
+        def mode_dynamics(self, belief: RBPFBelief, control: object) -> ModeDynamics:
+            return replace(super().mode_dynamics(belief, control), particle_log_weight=weight)
+
+    fields = {k: torch.tensor(v, dtype=F64) for k, v in problem.arrays.items()}
+    fields["transition"] = fields["transition"][0]
+    rbpf = RBPF(Fixed(**fields), 5)
+    belief = rbpf.init(_prior())
+    with pytest.raises(ValueError, match=match):
+        rbpf.step(belief, torch.tensor(problem.ys[0]))

@@ -375,6 +375,7 @@ class RBPF:
         if not isinstance(self.manifold, Euclidean):
             belief, chart = self._belief_in_chart(belief, dynamics)
         packed, shared, mode_log_weight = self._packed_dynamics(belief, dynamics)
+        mode_log_weight = self._child_log_weight(belief, mode_log_weight, dynamics)
         rows = self._transition_rows(belief, transition, dynamics.transition_rows)
         # Without gradients to carry, the step runs without autograd's bookkeeping. (Not in
         # inference mode: its tensors would reach the next step's compiled kernels as
@@ -431,6 +432,29 @@ class RBPF:
         delta = self.manifold.local(origin, g.mean)
         local = dataclasses.replace(belief, gaussians=unchecked_gaussian(delta, g.cov))
         return local, dynamics.chart.expand(*batch, n)
+
+    def _child_log_weight(
+        self, belief: RBPFBelief, mode_log_weight: Tensor | None, dynamics: ModeDynamics
+    ) -> Tensor | None:
+        """The model's log-weight of every particle's children, ``(*B', N, K)`` (or with
+        ``N`` of size 1 where it is the same for every particle): ``mode_log_weight
+        (*B', K)`` plus the checked ``particle_log_weight (*B', N, K)``; None if neither is
+        given."""
+        weight = dynamics.particle_log_weight
+        if weight is None:
+            return None if mode_log_weight is None else mode_log_weight.unsqueeze(-2)
+        model, N, K = self.model, self.num_particles, self.model.num_modes
+        field = "model: mode_dynamics().particle_log_weight"
+        weight = check_tensor(
+            field, weight, event_shape=(N, K), like=model.initial, allow_neginf=True
+        )
+        shapes = [("belief", belief.batch_shape), ("particle_log_weight", weight.shape[:-2])]
+        if broadcast_batch(shapes) != belief.batch_shape:
+            raise ValueError(
+                f"{field} batch {tuple(weight.shape[:-2])} does not broadcast to the belief's "
+                f"batch {tuple(belief.batch_shape)}"
+            )
+        return weight if mode_log_weight is None else weight + mode_log_weight.unsqueeze(-2)
 
     def _transition_rows(
         self, belief: RBPFBelief, transition: Tensor, rows: Tensor | None
@@ -633,9 +657,10 @@ class RBPF:
         )
         log_trans = torch.log(rows)  # (*B, N, K): log p(m_t = k | particle i)
         log_w = belief.log_weights.unsqueeze(-1) + log_trans + log_lik
-        for weight in (extra, mode_log_weight):
-            if weight is not None:
-                log_w = log_w + weight.unsqueeze(-2)
+        if extra is not None:
+            log_w = log_w + extra.unsqueeze(-2)
+        if mode_log_weight is not None:  # (*B', N or 1, K)
+            log_w = log_w + mode_log_weight
         log_w, log_evidence, dead, invalid = normalize_log_weights(
             log_w.flatten(-2), belief.log_evidence
         )

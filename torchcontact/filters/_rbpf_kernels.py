@@ -102,7 +102,8 @@ def bootstrap_core(
             packed dynamics (tested for finite values only); params: ``(D, *B, N)`` the
             particles' (:func:`particle_params`, given rather than gathered here: the compiled loops
             vectorize over contiguous parameters, not over indirect loads); shared: the
-            fields every mode shares; mode_log_weight: ``(*B', K)`` or None, the model's.
+            fields every mode shares; mode_log_weight: ``(*B', N or 1, K)`` or None, the
+            model's log-weights of every particle's modes.
         mean: ``(n, *B, N)``; cov: ``(n, n, *B, N)``: the particles, batch-last.
         y, observed: batch-last (:func:`batch_last_measurement`); extra: ``(*B', K)`` or None.
         log_weights: ``(*B, N)``; log_evidence: ``(*B,)``; history: ``(*B, N, L + 1)``;
@@ -129,9 +130,11 @@ def bootstrap_core(
     )
     given_flags = belief_flags(previous_modes, log_weights, log_evidence, packed.shape[-2])
     log_w = log_weights + log_lik
-    for weight in (extra, mode_log_weight):
-        if weight is not None:
-            log_w = log_w + weight.expand(*log_w.shape[:-1], weight.shape[-1]).gather(-1, modes)
+    for weight in (None if extra is None else extra.unsqueeze(-2), mode_log_weight):
+        if weight is not None:  # (*B', N or 1, K)
+            log_w = log_w + weight.expand(*log_w.shape, weight.shape[-1]).gather(
+                -1, modes.unsqueeze(-1)
+            ).squeeze(-1)
     log_w, log_evidence, dead, invalid = normalize_log_weights(log_w, log_evidence)
     history = torch.cat([modes.unsqueeze(-1), history[..., :-1]], -1)
     # ESS = 1 / Σ w² < threshold · N, in log space

@@ -178,6 +178,12 @@ class ModeDynamics:
             mode ``k`` in this step, like the step's ``extra_log_likelihood`` (e.g. the
             contact model's penalty on modes that are physically inconsistent at the
             linearization point); ``-inf`` rules a mode out.
+        particle_log_weight: optional ``(*B', N, K)`` log-weight added to particle ``i``
+            when it takes mode ``k`` in this step, on top of ``mode_log_weight`` (e.g. the
+            spatial contact model's penalty on a mode whose contacts a particle's own state
+            contradicts); ``-inf`` rules the mode out for that particle. Unlike
+            ``transition_rows`` it is not normalized: a particle every mode of which is
+            penalized loses weight against the others.
         transition_rows: optional ``(*B', N, K)`` per-particle mode transition of this step,
             ``p(m_t = k | particle i)``, each row non-negative and summing to 1. It replaces the
             row of the model's transition matrix that particle ``i``'s mode would select: for
@@ -204,6 +210,7 @@ class ModeDynamics:
     d: Tensor
     R: Tensor
     mode_log_weight: Tensor | None = None
+    particle_log_weight: Tensor | None = None
     transition_rows: Tensor | None = None
     origin: Tensor | None = None
     chart: Tensor | None = None
