@@ -1012,3 +1012,51 @@ def test_exact_resolution_gives_the_physics_mode_at_the_point() -> None:
     torch.testing.assert_close(f[0], exact, rtol=0.0, atol=1e-9)
     slots = model.slot_modes(x, control=control)[0]
     assert ((slots >= 1) == (result.mode[0] >= 1)).all()  # integers: exact
+
+
+def test_particles_whose_gaps_contradict_a_mode_are_penalized() -> None:
+    """Mode 0 closes the four bottom corners on the table, mode 1 separates them. The
+    closed-form corner gaps of each particle (z + (R c)_z over the corners c = (±a, ±b, -h))
+    decide the verdict: a mode is contradicted where a corner it closes is more than
+    ``consistency_gap`` (3 mm) above the table or a corner it separates is more than 3 mm
+    inside. The model judges from the belief's mean (the resting box, which carries the
+    weight) to first order in each particle's offset, which agrees away from the threshold."""
+    scene = hand_scene(height=1.0)
+    modes = torch.zeros(2, scene.num_slots, dtype=torch.long)
+    modes[0, :4] = 1
+    penalty = 7.0
+    model = model_of(scene, modes, particle_penalty=penalty)
+    a, b, c = HALF
+    tilt = quat_exp(torch.tensor([0.4, 0.0, 0.0], dtype=DT))
+    particles = torch.stack(
+        [
+            state((0.0, 0.0, c)),  # resting
+            state((0.0, 0.0, c + 0.02)),  # 2 cm up
+            state((0.0, 0.0, c - 0.02)),  # 2 cm into the table
+            torch.cat([state((0.0, 0.0, c))[:3], tilt, torch.zeros(6, dtype=DT)]),  # tipped
+            state((0.0, 0.0, c + 0.002)),  # within the tolerance
+        ]
+    )
+    N = particles.shape[0]
+    belief = RBPF(model, N).init(Gaussian(particles[0], 1e-6 * torch.eye(12, dtype=DT)))
+    g = belief.gaussians
+    belief = dataclasses.replace(
+        belief,
+        gaussians=Gaussian(particles, g.cov),
+        log_weights=torch.tensor([0.0] + [-40.0] * (N - 1), dtype=DT),
+    )
+    zeros = torch.zeros(4, dtype=DT)
+    dynamics = model.mode_dynamics(belief, RobotControl(q_robot=zeros, v_robot=zeros))
+    corners = torch.tensor([[sx * a, sy * b, -c] for sx in (-1, 1) for sy in (-1, 1)], dtype=DT)
+    gaps = (
+        particles[:, None, 2]
+        + torch.einsum("nij,cj->nci", quat_to_matrix(particles[:, 3:7]), corners)[..., 2]
+    )  # (N, 4)
+    gap = model.consistency_gap
+    expected = torch.stack([(gaps > gap).any(-1), (gaps < -gap).any(-1)], dim=-1)  # (N, 2)
+    verdicts = [[False, False], [True, False], [False, True], [True, True], [False, False]]
+    assert expected.tolist() == verdicts  # both verdicts occur
+    assert dynamics.particle_log_weight is not None
+    assert (dynamics.particle_log_weight == -penalty * expected.to(DT)).all()  # 0 or -7
+    off = model_of(scene, modes).mode_dynamics(belief, RobotControl(q_robot=zeros, v_robot=zeros))
+    assert off.particle_log_weight is None

@@ -118,6 +118,11 @@ class _Linearization:
         nearly: ``(P, K)`` bool, the verdict with ten times the tolerance.
         held: ``(P, 1)`` bool, the point holds its state for the step (no mode usable; every
             mode's ``F``, ``f`` and ``c`` are the identity's).
+        touching: ``(P, K, S_a)`` bool, the acting slots each mode closes at ``x̄`` (its
+            resolved slots).
+        phi: ``(P, S_a)`` the acting slots' gaps at ``x̄``; Jn: ``(P, S_a, 6)`` their normal
+            rows (gap rate per world-frame twist of the body); candidate: ``(P, S_a)`` bool,
+            the slot is a contact candidate at ``x̄``.
     """
 
     F: Tensor
@@ -128,6 +133,10 @@ class _Linearization:
     consistent: Tensor
     nearly: Tensor
     held: Tensor
+    touching: Tensor
+    phi: Tensor
+    Jn: Tensor
+    candidate: Tensor
 
 
 @dataclass(frozen=True, eq=False, kw_only=True)
@@ -240,6 +249,20 @@ class SpatialContactModel(ContactModelFields):
     contradicts itself extrapolates its Jacobian, and the mixture's spread would carry its
     particles away.
 
+    Particles checked. The modes are resolved and gated at :math:`\bar x`, but each
+    particle predicts from its own mean :math:`\mu_i`; where the particles spread, a mode
+    that closes a contact at :math:`\bar x` may hold a particle centimetres away, and its
+    linearized step then carries that particle along the contact's lever arm (a gap
+    :math:`\phi` closed about a pivot at distance :math:`r` turns the body by
+    :math:`\phi / r`). With ``particle_penalty`` :math:`> 0`, child :math:`(i, k)` gets the
+    log-weight :math:`-`\ ``particle_penalty`` (``ModeDynamics.particle_log_weight``) where
+    the gaps at :math:`\mu_i`, to first order :math:`\phi_i = \phi(\bar x) + J_n
+    (\delta p, R\,\delta\theta)` with :math:`\delta = \mathrm{local}(\bar x, \mu_i)`,
+    contradict mode :math:`k`: a slot it closes is more than ``consistency_gap`` apart, or
+    a candidate slot it separates penetrates by more. A particle that every mode
+    contradicts loses weight against the others; the penalty is finite, so that a belief
+    all of whose particles are contradicted keeps them.
+
     Measurements. The camera measures the pose, :math:`y = \mathrm{retract}(p, q;\ n)`,
     :math:`n \sim N(0, R)` in the 6-dim tangent (``y`` is ``(7,)``, NaN where occluded);
     tactile pads on the robot's links read binary contacts
@@ -273,6 +296,11 @@ class SpatialContactModel(ContactModelFields):
         max_gain: the largest entry of a mode's tangent Jacobian that is taken as a step;
             a mode whose Jacobian exceeds it at the linearization point counts as not solved
             there (see the class docstring). ``inf`` disables the check.
+        particle_penalty: log-weight penalty (nats, ``>= 0``; ``0`` disables it) of a
+            particle's child under a mode whose contacts that particle contradicts: a slot the
+            mode closes lies more than ``consistency_gap`` from touching at the particle's
+            mean, or a candidate slot the mode separates penetrates it by more (see Particles
+            checked in the class docstring).
         compiled: run the linearization's contact assembly through :func:`torch.compile`
             (one graph and its backward; see
             ``torchcontact._compiled``): the first step compiles (minutes on a CPU
@@ -295,12 +323,14 @@ class SpatialContactModel(ContactModelFields):
     resolve_slots: bool = False
     max_gain: float = 1e6
     exact_resolution: bool = True
+    particle_penalty: float = 0.0
     compiled: bool = False
 
     def __post_init__(self) -> None:
         scene = self.scene
         if self.max_gain != math.inf:  # inf disables the check
             check_real("max_gain", self.max_gain, low=0.0, low_open=True)
+        check_real("particle_penalty", self.particle_penalty, low=0.0)
         for name in ("compiled", "exact_resolution"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name}: expected a bool, got {getattr(self, name)!r}")
@@ -478,6 +508,13 @@ class SpatialContactModel(ContactModelFields):
             nearly=lin.nearly,
         ).masked_fill(lin.held, 0.0)
         noise = self._noise
+        particle_log_weight = None
+        if self.particle_penalty > 0:
+            violated = self._contradicted(belief.gaussians.mean, flat, lin)  # (P, N, K)
+            particle_log_weight = torch.zeros(violated.shape, dtype=dtype, device=self.device)
+            particle_log_weight = particle_log_weight.masked_fill(
+                violated, -self.particle_penalty
+            ).reshape(*batch, *violated.shape[1:])
         return ModeDynamics(
             F=lin.F.to(dtype).reshape(*batch, K, TANGENT_DIM, TANGENT_DIM),
             c=lin.c.to(dtype).reshape(*batch, K, TANGENT_DIM),
@@ -486,6 +523,7 @@ class SpatialContactModel(ContactModelFields):
             d=noise["d"],
             R=noise["R"],
             mode_log_weight=log_weight.reshape(*batch, K),
+            particle_log_weight=particle_log_weight,
             origin=mean.detach().reshape(*batch, STATE_DIM),
             chart=chart.to(dtype).reshape(*batch, STATE_DIM),
             measurement_chart=chart[:, :OBS_DIM].to(dtype).reshape(*batch, OBS_DIM),
@@ -669,7 +707,26 @@ class SpatialContactModel(ContactModelFields):
             consistent=consistent,
             nearly=nearly,
             held=stranded,
+            touching=modes >= 1,
+            phi=at_x.phi[:, 0],
+            Jn=at_x.Jn[:, 0],
+            candidate=at_x.slot_mask[:, 0],
         )
+
+    def _contradicted(self, particles: Tensor, x: Tensor, lin: _Linearization) -> Tensor:
+        """``(P, N, K)`` bool: mode ``k``'s contacts at ``x (P, 13)`` contradict particle
+        ``i``'s mean ``particles (*B, N, 13)`` (see :attr:`particle_penalty`); False where
+        the point holds its state."""
+        P = x.shape[0]
+        mu = particles.detach().reshape(P, -1, STATE_DIM).to(x.dtype)
+        delta = SE3.local(x[:, None].expand_as(mu), mu)  # (P, N, 12)
+        turn = torch.einsum("pij,pnj->pni", quat_to_matrix(x[:, 3:7]), delta[..., 3:6])
+        offset = torch.cat([delta[..., :3], turn], dim=-1)  # (P, N, 6), world frame
+        phi = lin.phi[:, None] + torch.einsum("psj,pnj->pns", lin.Jn, offset)  # (P, N, S_a)
+        gap = self.consistency_gap
+        apart = (phi > gap)[:, :, None] & lin.touching[:, None]  # (P, N, K, S_a)
+        inside = ((phi < -gap) & lin.candidate[:, None])[:, :, None] & ~lin.touching[:, None]
+        return (apart | inside).any(-1) & ~lin.held[:, None]
 
     def _solved_jacobians(
         self,
