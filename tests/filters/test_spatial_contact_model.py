@@ -1060,3 +1060,28 @@ def test_particles_whose_gaps_contradict_a_mode_are_penalized() -> None:
     assert (dynamics.particle_log_weight == -penalty * expected.to(DT)).all()  # 0 or -7
     off = model_of(scene, modes).mode_dynamics(belief, RobotControl(q_robot=zeros, v_robot=zeros))
     assert off.particle_log_weight is None
+
+
+def test_a_step_faster_than_max_speed_change_is_not_solved() -> None:
+    """A box in free flight, spinning about its vertical principal axis (no gyroscopic
+    torque): its step changes the velocity by g h downwards and nothing else, so the fastest
+    point's velocity changes by exactly g h (closed form). A bound just below rules the
+    step out, one just above keeps it."""
+    scene = hand_scene(height=1.0)
+    modes = torch.zeros(1, scene.num_slots, dtype=torch.long)
+    x = state((0.0, 0.0, 0.5), (0.1, 0.0, 0.0, 0.0, 0.0, 4.0))
+    zeros = torch.zeros(4, dtype=DT)
+    control = RobotControl(q_robot=zeros, v_robot=zeros)
+    g_h = 9.81 * H
+    verdicts = []
+    for bound in (0.99 * g_h, 1.01 * g_h, math.inf):
+        model = model_of(scene, modes, max_speed_change=bound)
+        _, f, solved = model.linearize(x, control=control)
+        verdicts.append(bool(solved[0]))
+        if solved[0]:
+            change = f[0, 7:] - x[7:]
+            expected = torch.tensor([0.0, 0.0, -g_h, 0.0, 0.0, 0.0], dtype=DT)
+            torch.testing.assert_close(change, expected, rtol=0.0, atol=1e-12)
+    assert verdicts == [False, True, True]
+    with pytest.raises(ValueError, match="max_speed_change"):
+        model_of(scene, modes, max_speed_change=0.0)

@@ -155,3 +155,34 @@ def test_tilted_ground_descends_along_x() -> None:
 def test_bad_shapes_raise_value_error_naming_the_argument(build, name: str) -> None:
     with pytest.raises(ValueError, match=name):
         build()
+
+
+@pytest.mark.parametrize(
+    ("shape", "profile", "top"),
+    [
+        (Box((0.3, 0.2, 0.05)), None, 0.05),
+        (Sphere(0.25), lambda z: math.sqrt(max(0.25**2 - z * z, 0.0)), 0.25),
+        (
+            Capsule(0.05, 0.2),
+            lambda z: 0.05 if abs(z) <= 0.2 else math.sqrt(max(0.05**2 - (abs(z) - 0.2) ** 2, 0)),
+            0.25,
+        ),
+    ],
+)
+def test_bounding_radius_is_the_farthest_surface_point(
+    shape: Box | Sphere | Capsule, profile: object, top: float
+) -> None:
+    """The largest distance from the centroid over a grid of surface points (the box's face
+    grids hold its corners; a solid of revolution's meridian holds its tips)."""
+    if isinstance(shape, Box):
+        a, b, c = shape.half_extents.tolist()
+        grid = np.stack(
+            np.meshgrid(*(np.linspace(-h, h, 21) for h in (a, b, c)), indexing="ij"), -1
+        ).reshape(-1, 3)
+        on_surface = (np.abs(grid) >= np.array([a, b, c]) - 1e-15).any(-1)
+        farthest = np.linalg.norm(grid[on_surface], axis=-1).max()
+    else:
+        z = np.linspace(-top, top, 4001)
+        radial = np.array([profile(v) for v in z])  # type: ignore[operator]
+        farthest = np.sqrt(z * z + radial * radial).max()
+    assert shape.bounding_radius == pytest.approx(farthest, rel=1e-12)

@@ -77,6 +77,12 @@ class Box:
         """Volume ``8 a b c`` in m³."""
         return float(8 * self.half_extents.prod())
 
+    @property
+    def bounding_radius(self) -> float:
+        """Distance ``√(a² + b² + c²)`` of the farthest points (the corners) from the
+        centroid, metres."""
+        return float(torch.linalg.vector_norm(self.half_extents))
+
     def unit_inertia(self) -> Tensor:
         """``(3, 3)`` float64 inertia tensor per unit mass about the centroid, body frame (m²)."""
         square = self.half_extents**2
@@ -121,6 +127,11 @@ class Sphere:
     def volume(self) -> float:
         """Volume ``(4/3) π r³`` in m³."""
         return 4 / 3 * math.pi * self.radius**3
+
+    @property
+    def bounding_radius(self) -> float:
+        """Distance ``r`` of the farthest points from the centre, metres."""
+        return self.radius
 
     def unit_inertia(self) -> Tensor:
         """``(3, 3)`` float64 inertia tensor per unit mass about the centre, body frame (m²)."""
@@ -173,6 +184,12 @@ class Capsule:
         """Volume ``π r² (2l) + (4/3) π r³`` in m³."""
         r, length = self.radius, 2 * self.half_length
         return math.pi * r * r * length + 4 / 3 * math.pi * r**3
+
+    @property
+    def bounding_radius(self) -> float:
+        """Distance ``l + r`` of the farthest points (the caps' tips) from the centroid,
+        metres."""
+        return self.half_length + self.radius
 
     def unit_inertia(self) -> Tensor:
         """``(3, 3)`` float64 inertia tensor per unit mass about the centroid, body frame (m²)."""
