@@ -74,6 +74,13 @@ PF_FALLBACK: tuple[Method, ...] = ("lemke",)
 #: Gaps (m) of a mode's contacts that the RBPF's model takes as closed at the linearization
 #: point: two camera stds, the mixture mean's typical error along a contact normal.
 CONSISTENCY_GAP = 0.01
+#: Log-weight penalty (nats) of a particle's child under a mode whose contacts the
+#: particle's own gaps contradict: the particles spread around the mean while the hand closes,
+#: and a mode resolved at the mean would carry the far ones along its contacts' lever arms.
+PARTICLE_PENALTY = 5.0
+#: The largest velocity change (m/s) of a point of the box that a mode's step may make: the
+#: training trials' true steps change it by at most 0.22 m/s (the fingers' speeds and g h).
+MAX_SPEED_CHANGE = 1.0
 #: The prior's std: position (m), rotation (rad), linear and angular velocity.
 PRIOR_STD = (0.005, 0.005, 0.005, 0.035, 0.035, 0.035, 0.01, 0.01, 0.01, 0.1, 0.1, 0.1)
 
@@ -232,7 +239,9 @@ def box_contact_model(settings: BarrettBoxGrasp, train: BoxTrials) -> SpatialCon
     training trials' rollouts, process noise :data:`RBPF_NOISE_STD`, the camera's noise and
     the hand's pads. Modes inconsistent at the linearization point are ruled out
     (``inconsistency_penalty=inf``): with a finite penalty, modes whose fingers drag the box
-    from a distance keep enough weight to carry it away while the camera is occluded."""
+    from a distance keep enough weight to carry it away while the camera is occluded. So are
+    steps faster than :data:`MAX_SPEED_CHANGE`, and each particle's modes are checked
+    against its own gaps (:data:`PARTICLE_PENALTY`)."""
     scene = box_filter_scene(settings)
     return SpatialContactModel.from_rollout(
         scene,
@@ -243,6 +252,8 @@ def box_contact_model(settings: BarrettBoxGrasp, train: BoxTrials) -> SpatialCon
         inconsistency_penalty=math.inf,
         consistency_gap=CONSISTENCY_GAP,
         resolve_slots=True,
+        particle_penalty=PARTICLE_PENALTY,
+        max_speed_change=MAX_SPEED_CHANGE,
     )
 
 
