@@ -19,43 +19,52 @@ here=$(cd "$(dirname "$0")" && pwd)
 mkdir -p "$out"
 export PYTHONUNBUFFERED=1
 
-python3 - "$device" <<'EOF'
-import platform, sys, torch
+python3 - "$device" "$here" <<'EOF'
+import platform, sys
+sys.path.insert(0, sys.argv[2])
+import torch
+from _timing import device_name
 device = torch.device(sys.argv[1])
-name = torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor()
-print(f"torch {torch.__version__}, Python {platform.python_version()}, {device}: {name}")
+print(f"torch {torch.__version__}, Python {platform.python_version()}, {device}: "
+      f"{device_name(device)}, {torch.get_num_threads()} threads")
 EOF
 
-# run NAME SECONDS ARGS...: one benchmark, its output in OUT_DIR/NAME.log, its JSON in
-# OUT_DIR/NAME.json, SIGINT after SECONDS (then SIGKILL 15 s later).
+# run NAME SECONDS ARGS...: one benchmark, its output appended to OUT_DIR/NAME.log, its JSON in
+# OUT_DIR/NAME.json, SIGINT after SECONDS (then SIGKILL 15 s later); fails if the benchmark did.
 run() {
     local name=$1 seconds=$2
     shift 2
     local start=$SECONDS
-    echo "== $name $*"
+    echo "== $name $*" | tee -a "$out/$name.log"
     timeout -s INT -k 15 "$seconds" python3 "$here/$name.py" --device "$device" \
-        --out "$out/$name.json" "$@" >"$out/$name.log" 2>&1
+        --out "$out/$name.json" "$@" >>"$out/$name.log" 2>&1
     local status=$?
     if [ "$status" -ne 0 ]; then
         echo "FAILED: $name (exit $status after $((SECONDS - start)) s), the log's tail:"
         tail -n 25 "$out/$name.log"
-    else
-        echo "done: $name in $((SECONDS - start)) s"
-        # the tables and the summary lines
-        grep -E '^\||^(Planar|Spatial|MuJoCo|Target|Targets|CPU|filter|torch rows|target)' \
-            "$out/$name.log" | cut -c1-200
+        return 1
     fi
+    echo "done: $name in $((SECONDS - start)) s"
+    # the tables and the summary lines
+    grep -E '^\||^(Planar|Spatial|MuJoCo|Target|Targets|CPU|filter|torch rows|target)' \
+        "$out/$name.log" | cut -c1-200
 }
 
-if [ "$quick" = "--quick" ]; then
-    run bench_sim 150 --quick
-    run bench_sim3d 60 --quick
-    run bench_filters 90 --quick --kernels eager --particles 1000 --rounds 2
-    run bench_se3_rbpf 120 --quick
-else
-    run bench_sim 150 --steps 50
-    run bench_sim3d 75 --steps 50
-    run bench_filters 90 --kernels eager --particles 1000,10000,100000 --rounds 5
-    run bench_se3_rbpf 120 --eager --modes 4,all --particles 1000,10000 --steps 30
-fi
-echo "== results in $out"
+# (a function, so that bash has read the whole script before it starts the first benchmark)
+main() {
+    if [ "$quick" = "--quick" ]; then
+        # if compiling the simulator fails or overruns, the eager rows alone
+        run bench_sim 200 --quick || run bench_sim 60 --quick --eager
+        run bench_sim3d 60 --quick
+        run bench_filters 90 --quick --kernels eager --particles 1000 --rounds 2
+        run bench_se3_rbpf 120 --quick
+    else
+        run bench_sim 200 --steps 50 || run bench_sim 90 --steps 50 --eager
+        run bench_sim3d 75 --steps 50
+        run bench_filters 110 --kernels eager --particles 1000,10000,100000 --rounds 5
+        run bench_se3_rbpf 150 --eager --modes 4,all --particles 1000,10000 --steps 20
+    fi
+    echo "== results in $out"
+}
+
+main
