@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import os
+import platform
 import time
 from collections.abc import Callable
+
+import torch
 
 
 def best_time(fn: Callable[[], object], repeats: int) -> float:
@@ -49,3 +52,39 @@ def pin_to_quietest_cpu(*, probes: int = 5) -> dict[str, object]:
     quietest = min(speed, key=speed.__getitem__)
     os.sched_setaffinity(0, {quietest})
     return {"pinned_cpu": quietest, "probe_ns": {cpu: round(ns, 2) for cpu, ns in speed.items()}}
+
+
+def synchronize(device: torch.device) -> None:
+    """Wait for the work queued on ``device`` (a CUDA stream runs asynchronously: the clock may
+    be read only once its kernels are done); nothing to wait for on the CPU."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def device_name(device: torch.device) -> str:
+    """The device in words for the results: the GPU's name, or the CPU's model."""
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    cpuinfo = "/proc/cpuinfo"
+    if os.path.exists(cpuinfo):
+        with open(cpuinfo) as info:
+            for line in info:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    return platform.processor() or platform.machine()
+
+
+def parse_device(value: str) -> torch.device:
+    """The ``--device`` argument as a device; CUDA must be available when asked for."""
+    device = torch.device(value)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit(f"--device {value}: CUDA is not available")
+    return device
+
+
+def parse_sizes(value: str) -> tuple[int, ...]:
+    """A comma-separated list of positive integers (``--sizes 1,64,1024``)."""
+    sizes = tuple(int(part) for part in value.split(","))
+    if not sizes or min(sizes) < 1:
+        raise SystemExit(f"sizes must be positive integers, got {value!r}")
+    return sizes

@@ -29,6 +29,11 @@ every step (they agree to rounding: the compiled kernels sum in another order).
 
 ``--eager``: the eager variant alone (no compilation). ``--quick``: a small eager-only run
 (``K = 2``, ``N = 50``, 14 steps, 2 training trials) that checks the script.
+
+``--device cuda``: the filter on the GPU (the training trials are simulated on the CPU, then
+the model, the trial and the prior move); its times are wall times after
+``torch.cuda.synchronize`` (the CPU time of the thread does not count the GPU's work).
+``--particles 1000,10000`` steps several particle counts; ``--out`` names the results file.
 """
 
 from __future__ import annotations
@@ -45,16 +50,26 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-from _timing import pin_to_quietest_cpu  # benchmarks/ is on sys.path when run as a script
+from _timing import (  # benchmarks/ is on sys.path when run as a script
+    device_name,
+    parse_device,
+    parse_sizes,
+    pin_to_quietest_cpu,
+    synchronize,
+)
+from torch import Tensor
 
 from torchcontact.experiments import (
     BarrettBoxGrasp,
+    BoxTrials,
     box_contact_model,
     box_prior,
     box_trials,
     joint_motion,
 )
-from torchcontact.filters import RBPF, SpatialContactModel
+from torchcontact.filters import RBPF, Gaussian, SpatialContactModel
+from torchcontact.sim import Rollout
+from torchcontact.states import TactileArray
 
 RESULTS = Path(__file__).resolve().parent / "results" / "bench_se3_rbpf.json"
 #: Steps left out of the medians (the compiled variant compiles in its first).
@@ -84,19 +99,63 @@ def restricted(model: SpatialContactModel, K: int, *, compiled: bool) -> Spatial
     )
 
 
+def _moved(value: object, device: torch.device) -> object:
+    return value.to(device) if isinstance(value, Tensor) else value
+
+
+def model_on(model: SpatialContactModel, device: torch.device) -> SpatialContactModel:
+    """``model`` with its tensors (and its tactile arrays') on ``device``."""
+    tactile = {
+        name: TactileArray(
+            **{f.name: _moved(getattr(pad, f.name), device) for f in dataclasses.fields(pad)}
+        )
+        for name, pad in model.tactile.items()
+    }
+    tensors = {
+        f.name: getattr(model, f.name).to(device)
+        for f in dataclasses.fields(model)
+        if isinstance(getattr(model, f.name), Tensor)
+    }
+    return dataclasses.replace(model, tactile=tactile, **tensors)
+
+
+def trials_on(trials: BoxTrials, device: torch.device) -> BoxTrials:
+    """``trials`` with their tensors (and their rollout's) on ``device``."""
+    truth = trials.truth
+    moved = Rollout(
+        **{f.name: _moved(getattr(truth, f.name), device) for f in dataclasses.fields(truth)}
+    )
+    fields = {
+        f.name: _moved(getattr(trials, f.name), device)
+        for f in dataclasses.fields(trials)
+        if f.name != "truth"
+    }
+    return BoxTrials(truth=moved, **fields)
+
+
 def run_modes(
-    full: SpatialContactModel, trials, K: int, N: int, steps: int, compiled: bool
+    full: SpatialContactModel,
+    trials: BoxTrials,
+    K: int,
+    N: int,
+    steps: int,
+    compiled: bool,
+    device: torch.device,
 ) -> dict[str, object]:
     """Step the variants in lockstep over one trial; their timings and agreement."""
     names = ("eager", "compiled") if compiled else ("eager",)
     variants = []
     for name in names:
-        model = restricted(full, K, compiled=name == "compiled")
+        model = model_on(restricted(full, K, compiled=name == "compiled"), device)
         rbpf = RBPF(model, N, proposal="all_modes", compiled=name == "compiled")
         variants.append(Variant(name, model, rbpf, [], []))
-    prior = box_prior(trials, torch.Generator().manual_seed(0))
+    prior = box_prior(trials, torch.Generator().manual_seed(0))  # drawn on the CPU
+    prior = Gaussian(prior.mean.to(device), prior.cov.to(device))
+    trials = trials_on(trials, device)
     beliefs = [v.rbpf.init(prior) for v in variants]
-    generators = [torch.Generator().manual_seed(1) for _ in variants]
+    generators = [torch.Generator(device).manual_seed(1) for _ in variants]
+    # on a GPU the thread's CPU time leaves out the kernels: wall time after synchronizing
+    clock = time.thread_time if device.type == "cpu" else time.perf_counter
     largest_gap = 0.0
     for t in range(steps):
         control = joint_motion(trials, t)
@@ -105,17 +164,20 @@ def run_modes(
             extra = v.model.tactile_log_likelihood(
                 trials.readings[t], pose=belief.mean()[..., :7], control=control
             )
-            wall, start = time.perf_counter(), time.thread_time()
+            synchronize(device)
+            wall, start = time.perf_counter(), clock()
             beliefs[i] = v.rbpf.step(
                 belief, trials.y[t], extra_log_likelihood=extra, control=control,
                 generator=generators[i],
             )  # fmt: skip
-            v.step_s.append(time.thread_time() - start)
+            synchronize(device)
+            v.step_s.append(clock() - start)
             if t < WARMUP:
                 v.first_steps_s += time.perf_counter() - wall
-            start = time.thread_time()
+            start = clock()
             v.model.mode_dynamics(belief, control)
-            v.dynamics_s.append(time.thread_time() - start)
+            synchronize(device)
+            v.dynamics_s.append(clock() - start)
         if len(variants) == 2:
             means = [b.mean()[..., :3] for b in beliefs]
             largest_gap = max(largest_gap, float((means[0] - means[1]).abs().max()))
@@ -137,12 +199,15 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="small eager-only check")
     parser.add_argument("--modes", default="4,all", help="comma-separated K values, or all")
     parser.add_argument("--eager", action="store_true", help="the eager variant alone")
-    parser.add_argument("--particles", type=int, default=1000)
+    parser.add_argument("--particles", default="1000", help="comma-separated particle counts")
     parser.add_argument("--steps", type=int, default=30)
+    parser.add_argument("--device", default="cpu", help="where the filter runs (cuda)")
+    parser.add_argument("--out", type=Path, default=RESULTS, help="the JSON results file")
     args = parser.parse_args()
+    device = parse_device(args.device)
     torch.set_num_threads(1)
     machine = pin_to_quietest_cpu()
-    N = 50 if args.quick else args.particles
+    Ns = (50,) if args.quick else parse_sizes(args.particles)
     steps = 14 if args.quick else args.steps
     # The experiment's training trials (train/barrett_box_grasp.py: 16, seed 10,000 + its
     # seed 0) and 80 steps; its modes merged by slot group (35).
@@ -156,7 +221,11 @@ def main() -> None:
     if max(Ks) > full.num_modes:
         raise SystemExit(f"--modes: the training trials give {full.num_modes} modes")
     compiled = not (args.quick or args.eager)
-    rows = [run_modes(full, trial, K, N, steps, compiled=compiled) for K in Ks]
+    rows = [
+        run_modes(full, trial, K, N, steps, compiled=compiled, device=device)
+        for N in Ns
+        for K in Ks
+    ]
     cpu = platform.processor()
     if os.path.exists("/proc/cpuinfo"):
         with open("/proc/cpuinfo") as info:
@@ -164,6 +233,7 @@ def main() -> None:
         cpu = names[0] if names else cpu
     load = os.getloadavg() if hasattr(os, "getloadavg") else (math.nan,) * 3
     print(f"CPU: {cpu}, one thread, load average {load[0]:.2f} {load[1]:.2f} {load[2]:.2f}")
+    print(f"filter on {device}: {device_name(device)}")
     print(f"target: <= {TARGET_MS:g} ms per step at N = 1,000\n")
     print(
         "| K | N | variant | step ms | step p90 ms | mode_dynamics ms | first 3 steps s "
@@ -186,16 +256,19 @@ def main() -> None:
             print(
                 f"|   |   | mean difference (m) | {row['largest_mean_difference_m']:.2e} | | | | |"
             )
-    if not args.quick:
+    if not args.quick or args.out != RESULTS:
         record = {
             "cpu": cpu,
+            "device": str(device),
+            "device_name": device_name(device),
             "load_average": load,
             "torch": torch.__version__,
             "threads": 1,
             **machine,
             "rows": rows,
         }
-        RESULTS.write_text(json.dumps(record, indent=2) + "\n")
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(record, indent=2) + "\n")
 
 
 if __name__ == "__main__":

@@ -11,7 +11,12 @@ before the first size and after each (the best of these is the reference, so tha
 load the rows saw); its steps per second on one core is the reference for the ratio. Prints
 a markdown table and writes ``benchmarks/results/bench_sim.json``.
 
-    python benchmarks/bench_sim.py [--quick]
+    python benchmarks/bench_sim.py [--quick] [--device cuda] [--sizes 1,1024] [--steps 50]
+        [--out results.json] [--eager]
+
+``--device cuda`` steps the batch on the GPU (B = 1, 1,024, 16,384 and 65,536 by default,
+the clock read after ``torch.cuda.synchronize``); MuJoCo, a CPU reference, is left out there.
+``--eager`` leaves out the compiled simulator (its columns are NaN).
 """
 
 from __future__ import annotations
@@ -19,12 +24,19 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import json
+import math
 import platform
 import time
 from pathlib import Path
 
 import torch
-from _timing import pin_to_quietest_cpu  # benchmarks/ is on sys.path when run as a script
+from _timing import (  # benchmarks/ is on sys.path when run as a script
+    device_name,
+    parse_device,
+    parse_sizes,
+    pin_to_quietest_cpu,
+    synchronize,
+)
 
 from torchcontact.geometry import HalfPlane, Polygon
 from torchcontact.sim import (
@@ -51,8 +63,9 @@ MUJOCO_BOX = """
 """
 
 
-def box_states(sim: Simulator, count: int) -> SceneState:
-    """``count`` boxes: sliding at 1 m/s, balanced past a corner (tipping), or resting."""
+def box_states(sim: Simulator, count: int, device: torch.device) -> SceneState:
+    """``count`` boxes on ``device``: sliding at 1 m/s, balanced past a corner (tipping), or
+    resting."""
     kind = torch.arange(count) % 3
     theta = torch.where(kind == 1, 1.2, 0.0).to(torch.float64)
     corner = torch.tensor([-0.5, -0.25], dtype=torch.float64)
@@ -63,41 +76,45 @@ def box_states(sim: Simulator, count: int) -> SceneState:
     q = torch.stack([center[:, 0], center[:, 1], theta], dim=-1)
     v = torch.zeros(count, 3, dtype=torch.float64)
     v[:, 0] = torch.where(kind == 0, 1.0, 0.0)
-    return sim.initial_state(q=q.unsqueeze(1), v=v.unsqueeze(1))
+    return sim.initial_state(q=q.unsqueeze(1).to(device), v=v.unsqueeze(1).to(device))
 
 
 def time_torchcontact(
-    sims: tuple[Simulator, ...], count: int, steps: int
+    sims: tuple[Simulator, ...], count: int, steps: int, device: torch.device
 ) -> tuple[list[float], float]:
     """Seconds for ``steps`` steps of ``count`` scenes with each simulator (best of 3, the
     simulators' rollouts alternating so that they share the machine's load), and the fast-path
     share of the first."""
-    state = box_states(sims[0], count)
+    state = box_states(sims[0], count, device)
     seconds = [float("inf")] * len(sims)
     with torch.no_grad():
         for sim in sims:
             sim.rollout(state, steps=3)  # warm-up (a compiled step compiles at its second step)
         for _ in range(3):
             for i, sim in enumerate(sims):
+                synchronize(device)
                 start = time.perf_counter()
                 run = sim.rollout(state, steps=steps)
+                synchronize(device)
                 seconds[i] = min(seconds[i], time.perf_counter() - start)
                 if i == 0:
                     fast = float((run.solver == SOLVED_BY_GUESS).double().mean())
     return seconds, fast
 
 
-def time_assembly(sim: Simulator, count: int, repeats: int) -> float:
+def time_assembly(sim: Simulator, count: int, repeats: int, device: torch.device) -> float:
     """Milliseconds for one :func:`contact_problem` of ``count`` scenes, best of 5 runs of
     ``repeats``."""
-    state = box_states(sim, count)
+    state = box_states(sim, count, device)
     best = float("inf")
     with torch.no_grad():
         contact_problem(sim.scene, state)  # warm-up (builds the scene's tables)
         for _ in range(5):
+            synchronize(device)
             start = time.perf_counter()
             for _ in range(repeats):
                 contact_problem(sim.scene, state)
+            synchronize(device)
             best = min(best, (time.perf_counter() - start) / repeats)
     return 1e3 * best
 
@@ -121,7 +138,13 @@ def time_mujoco(steps: int) -> float | None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="small sizes, for smoke tests")
+    parser.add_argument("--device", default="cpu", help="where the batch is stepped (cuda)")
+    parser.add_argument("--sizes", help="comma-separated batch sizes B (overrides the default)")
+    parser.add_argument("--steps", type=int, help="steps per rollout (overrides the default)")
+    parser.add_argument("--out", type=Path, default=RESULTS, help="the JSON results file")
+    parser.add_argument("--eager", action="store_true", help="no compiled simulator")
     args = parser.parse_args()
+    device = parse_device(args.device)
     torch.set_num_threads(1)
     pinned = pin_to_quietest_cpu()
     scene = Scene(
@@ -133,18 +156,27 @@ def main() -> None:
         h=0.01,
     )
     sim = Simulator(scene)
-    compiled = Simulator(scene, compiled=True)
-    sizes = (1, 64) if args.quick else (1, 64, 1024)
-    steps = 20 if args.quick else 200
+    sims = (sim,) if args.eager else (sim, Simulator(scene, compiled=True))
+    if device.type == "cuda":
+        sizes = (1, 1024) if args.quick else (1, 1024, 16384, 65536)
+        steps = 20 if args.quick else 50
+    else:
+        sizes = (1, 64) if args.quick else (1, 64, 1024)
+        steps = 20 if args.quick else 200
+    sizes = parse_sizes(args.sizes) if args.sizes else sizes
+    steps = args.steps or steps
+    # MuJoCo is a CPU reference: on a GPU the rows are reported without it.
+    timer = time_mujoco if device.type == "cpu" else lambda _steps: None
     # MuJoCo is timed before and after every size (best of them): on a shared machine the load
     # changes during a run, and the reference should see the same load as the rows.
-    mujoco_seconds = [time_mujoco(20 * steps)]
+    mujoco_seconds = [timer(20 * steps)]
 
     rows = []
     for count in sizes:
-        (seconds, compiled_seconds), fast = time_torchcontact((sim, compiled), count, steps)
-        assembly = time_assembly(sim, count, steps // 4)
-        mujoco_seconds.append(time_mujoco(20 * steps))
+        timed, fast = time_torchcontact(sims, count, steps, device)
+        seconds, compiled_seconds = (*timed, math.nan)[:2]
+        assembly = time_assembly(sim, count, max(1, steps // 4), device)
+        mujoco_seconds.append(timer(20 * steps))
         rate = count * steps / seconds
         compiled_rate = count * steps / compiled_seconds
         rows.append(
@@ -168,8 +200,8 @@ def main() -> None:
             None if mujoco_rate is None else row["compiled_box_steps_per_s"] / mujoco_rate
         )
 
-    machine = platform.processor() or platform.machine()
-    print(f"Planar box simulation, one thread, {machine}, torch {torch.__version__}")
+    machine = device_name(device)
+    print(f"Planar box simulation, one thread, {device}: {machine}, torch {torch.__version__}")
     if mujoco_rate is None:
         print("MuJoCo not installed (pip install -e '.[bench]'): no reference column.")
     else:
@@ -190,10 +222,12 @@ def main() -> None:
             f"| {row['compiled_box_steps_per_s']:,.0f} "
             f"| {100 * row['fast_path_share']:.0f}% | {ratio} |"
         )
-    if not args.quick:
-        RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    if not args.quick or args.out != RESULTS:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
         payload = {
             "machine": platform.platform(),
+            "device": str(device),
+            "device_name": machine,
             "torch": torch.__version__,
             "threads": torch.get_num_threads(),
             "pinned_cpu": pinned["pinned_cpu"],
@@ -201,8 +235,8 @@ def main() -> None:
             "mujoco_steps_per_s": mujoco_rate,
             "rows": rows,
         }
-        RESULTS.write_text(json.dumps(payload, indent=2))
-        print(f"\nwrote {RESULTS}")
+        args.out.write_text(json.dumps(payload, indent=2))
+        print(f"\nwrote {args.out}")
 
 
 if __name__ == "__main__":

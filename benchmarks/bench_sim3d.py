@@ -11,7 +11,11 @@ per-core reference of the ratios. Every measurement runs once per round, in turn
 and keeps its best. Prints a markdown table and writes
 ``benchmarks/results/bench_sim3d.json``.
 
-    python benchmarks/bench_sim3d.py [--quick] [--profile]
+    python benchmarks/bench_sim3d.py [--quick] [--profile] [--device cuda] [--sizes 1,1024]
+        [--steps 50] [--out results.json]
+
+``--device cuda`` steps the batch on the GPU (B = 1, 1,024, 16,384 and 65,536 by default,
+the clock read after ``torch.cuda.synchronize``); MuJoCo, a CPU reference, is left out there.
 
 ``--profile`` prints torch.profiler's top operators and cProfile's torchcontact functions for
 one step at B = 4,096.
@@ -29,7 +33,13 @@ from collections.abc import Callable
 from pathlib import Path
 
 import torch
-from _timing import pin_to_quietest_cpu  # benchmarks/ is on sys.path when run as a script
+from _timing import (  # benchmarks/ is on sys.path when run as a script
+    device_name,
+    parse_device,
+    parse_sizes,
+    pin_to_quietest_cpu,
+    synchronize,
+)
 
 from torchcontact.geometry import Box, HalfSpace
 from torchcontact.sim import SOLVED_BY_GUESS, Body, Scene, SceneState, Simulator
@@ -72,31 +82,35 @@ def box_poses(count: int) -> tuple[torch.Tensor, torch.Tensor]:
     return q, v
 
 
-def box_states(sim: Simulator, count: int) -> SceneState:
+def box_states(sim: Simulator, count: int, device: torch.device) -> SceneState:
     q, v = box_poses(count)
-    return sim.initial_state(q=q.unsqueeze(1), v=v.unsqueeze(1))
+    return sim.initial_state(q=q.unsqueeze(1).to(device), v=v.unsqueeze(1).to(device))
 
 
-def torchcontact_timer(sim: Simulator, count: int, steps: int) -> Callable[[], float]:
-    """A timer of ``steps`` steps of ``count`` scenes: each call returns box-steps/s of one
-    rollout (warmed up once here)."""
-    state = box_states(sim, count)
+def torchcontact_timer(
+    sim: Simulator, count: int, steps: int, device: torch.device
+) -> Callable[[], float]:
+    """A timer of ``steps`` steps of ``count`` scenes on ``device``: each call returns
+    box-steps/s of one rollout (warmed up once here)."""
+    state = box_states(sim, count, device)
     with torch.no_grad():
         sim.rollout(state, steps=2)
 
     def measure() -> float:
         with torch.no_grad():
+            synchronize(device)
             start = time.perf_counter()
             sim.rollout(state, steps=steps)
+            synchronize(device)
             return count * steps / (time.perf_counter() - start)
 
     return measure
 
 
-def fast_path_share(sim: Simulator, count: int, steps: int) -> float:
+def fast_path_share(sim: Simulator, count: int, steps: int, device: torch.device) -> float:
     """The share of box-steps solved without an exact solver."""
     with torch.no_grad():
-        run = sim.rollout(box_states(sim, count), steps=steps)
+        run = sim.rollout(box_states(sim, count, device), steps=steps)
     return float((run.solver == SOLVED_BY_GUESS).double().mean())
 
 
@@ -159,7 +173,7 @@ def mujoco_rollout_timer(count: int, steps: int) -> Callable[[], float]:
     return measure
 
 
-def profile_one_step(sim: Simulator, count: int) -> None:
+def profile_one_step(sim: Simulator, count: int, device: torch.device) -> None:
     """Print torch.profiler's top operators (self CPU time) and cProfile's torchcontact functions
     (cumulative time) for one step of ``count`` scenes, after three steps (as in a rollout,
     where the previous modes are known)."""
@@ -168,7 +182,7 @@ def profile_one_step(sim: Simulator, count: int) -> None:
 
     from torch.profiler import ProfilerActivity, profile
 
-    state = box_states(sim, count)
+    state = box_states(sim, count, device)
     with torch.no_grad():
         for _ in range(3):  # warm-up: the first step starts from unknown modes
             state = sim.step(state).state
@@ -184,7 +198,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="small sizes, for smoke tests")
     parser.add_argument("--profile", action="store_true", help="profile one step at B = 4,096")
+    parser.add_argument("--device", default="cpu", help="where the batch is stepped (cuda)")
+    parser.add_argument("--sizes", help="comma-separated batch sizes B (overrides the default)")
+    parser.add_argument("--steps", type=int, help="steps per rollout (overrides the default)")
+    parser.add_argument("--out", type=Path, default=RESULTS, help="the JSON results file")
     args = parser.parse_args()
+    device = parse_device(args.device)
     torch.set_num_threads(1)
     cpu = pin_to_quietest_cpu(probes=2 if args.quick else 5)
     scene = Scene(
@@ -199,16 +218,23 @@ def main() -> None:
     )
     sim = Simulator(scene)
     if args.profile:
-        profile_one_step(sim, 4096)
+        profile_one_step(sim, 4096, device)
         return
-    sizes = (1, 64) if args.quick else (1, 64, 1024, 4096)
-    steps = 10 if args.quick else 100
+    if device.type == "cuda":
+        sizes = (1, 1024) if args.quick else (1, 1024, 16384, 65536)
+        steps = 10 if args.quick else 50
+    else:
+        sizes = (1, 64) if args.quick else (1, 64, 1024, 4096)
+        steps = 10 if args.quick else 100
+    sizes = parse_sizes(args.sizes) if args.sizes else sizes
+    steps = args.steps or steps
     repeats = 1 if args.quick else 3
 
     # Every timer runs once per round, in turn, and keeps its best: on a shared machine the
     # load changes during a run, and interleaving exposes every method to the same load.
-    timers = {count: torchcontact_timer(sim, count, steps) for count in sizes}
-    have_mujoco = importlib.util.find_spec("mujoco") is not None
+    timers = {count: torchcontact_timer(sim, count, steps, device) for count in sizes}
+    # MuJoCo is a CPU reference: on a GPU the rows are reported without it.
+    have_mujoco = device.type == "cpu" and importlib.util.find_spec("mujoco") is not None
     if have_mujoco:
         timers["mujoco_loop"] = mujoco_loop_timer(20 * steps)
         timers["mujoco_rollout"] = mujoco_rollout_timer(max(sizes), steps)
@@ -228,7 +254,7 @@ def main() -> None:
                 "B": count,
                 "box_steps_per_s": rate,
                 "ms_per_step": 1e3 * count / rate,
-                "fast_path_share": fast_path_share(sim, count, steps),
+                "fast_path_share": fast_path_share(sim, count, steps, device),
                 "ratio_to_mujoco_loop": None if mujoco_loop is None else rate / mujoco_loop,
                 "ratio_to_mujoco_rollout": (
                     None if mujoco_rollout is None else rate / mujoco_rollout
@@ -236,8 +262,8 @@ def main() -> None:
             }
         )
 
-    machine = platform.processor() or platform.machine()
-    print(f"Spatial box simulation, one thread, {machine}, torch {torch.__version__}")
+    machine = device_name(device)
+    print(f"Spatial box simulation, one thread, {device}: {machine}, torch {torch.__version__}")
     if reference is None:
         print("MuJoCo not installed (pip install -e '.[bench]'): no reference column.")
     else:
@@ -262,10 +288,12 @@ def main() -> None:
             f"\nTarget box-steps/s at B = {rows[-1]['B']:,} ≥ 1.0× MuJoCo per core: "
             f"{ratio:.3f}×, {verdict}"
         )
-    if not args.quick:
-        RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    if not args.quick or args.out != RESULTS:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
         payload = {
             "machine": platform.platform(),
+            "device": str(device),
+            "device_name": machine,
             "cpu": cpu,
             "torch": torch.__version__,
             "mujoco": None if not have_mujoco else importlib.metadata.version("mujoco"),
@@ -277,8 +305,8 @@ def main() -> None:
             "mujoco_rollout_batch": max(sizes),
             "rows": rows,
         }
-        RESULTS.write_text(json.dumps(payload, indent=2))
-        print(f"\nwrote {RESULTS}")
+        args.out.write_text(json.dumps(payload, indent=2))
+        print(f"\nwrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -38,7 +38,8 @@ def solve_one_by_one(
     """Run ``solve_one`` on every problem of the batch (float64, NumPy) and collect a Solution.
 
     Args:
-        problem: the contact problem, batch ``*B``, converted to float64 and detached.
+        problem: the contact problem, batch ``*B``, any device (converted to float64 on the
+            CPU and detached; the solution returns to its device).
         solve_one: the per-problem solver.
         tolerance: tolerance on :func:`relative_residual` for ``converged``.
         mode_atol: tolerance of :func:`contact_mode` (``None``: its default).
@@ -50,7 +51,9 @@ def solve_one_by_one(
         both ``solve_one``'s own success and the residual test.
     """
     batch, K, D = problem.batch_shape, problem.num_slots, problem.num_directions
-    flat = problem.to(dtype=torch.float64).flatten().map_tensors(torch.Tensor.detach)
+    # NumPy solves each problem on the CPU: the batch moves there (and back in restore_batch)
+    cpu = torch.device("cpu")
+    flat = problem.to(dtype=torch.float64, device=cpu).flatten().map_tensors(torch.Tensor.detach)
     with torch.no_grad():
         W, Minv_JT = delassus(flat)
         v_free = flat.v_free()

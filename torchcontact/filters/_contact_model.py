@@ -501,7 +501,7 @@ class PlanarContactModel(ContactModelFields):
             q=pose[..., None, :],
             v=torch.zeros_like(pose)[..., None, :],
             q_kinematic=q_kin,
-            mode=torch.zeros(*batch, self.scene.num_slots, dtype=torch.long),
+            mode=torch.zeros(*batch, self.scene.num_slots, dtype=torch.long, device=pose.device),
         )
         _, geometry = contact_problem(self.scene, state, control=v_kin)
         # The readings depend on a mode only through the slots it activates: evaluate each
@@ -515,7 +515,7 @@ class PlanarContactModel(ContactModelFields):
             q=pose[..., None, None, :].expand(*expand, 1, 3),
             points=geometry.points.unsqueeze(-3).expand(*expand, -1, 2),
             normals=geometry.normals.unsqueeze(-3).expand(*expand, -1, 2),
-            pn=torch.ones(*expand, self.scene.num_slots, dtype=dtype),
+            pn=torch.ones(*expand, self.scene.num_slots, dtype=dtype, device=pose.device),
             mode=acting.expand(*expand, -1),
             active=active,
         )
@@ -528,7 +528,7 @@ class PlanarContactModel(ContactModelFields):
     def _H(self) -> Tensor:
         """``(K, 3, 6)``: vision measures the pose, in every mode (one matrix, expanded)."""
         H = self.Q.new_zeros(OBS_DIM, STATE_DIM)
-        H[:, :OBS_DIM] = torch.eye(OBS_DIM, dtype=self.Q.dtype)
+        H[:, :OBS_DIM] = torch.eye(OBS_DIM, dtype=self.Q.dtype, device=self.Q.device)
         return H.expand(self.num_modes, OBS_DIM, STATE_DIM)
 
     @cached_property
@@ -567,7 +567,7 @@ class PlanarContactModel(ContactModelFields):
         if control is None:
             if Nk:
                 raise ValueError(f"control: required, the scene has {Nk} kinematic bodies")
-            empty = torch.zeros(*batch, 0, 3, dtype=dtype)
+            empty = torch.zeros(*batch, 0, 3, dtype=dtype, device=self.device)
             return empty, empty
         if not isinstance(control, KinematicControl):
             raise ValueError(f"control: expected a KinematicControl, got {type(control).__name__}")
@@ -626,7 +626,7 @@ def collect_modes(modes: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     table, inverse, counts = torch.unique(flat, dim=0, return_inverse=True, return_counts=True)
     order = torch.argsort(counts, descending=True, stable=True)
     rank = torch.empty_like(order)
-    rank[order] = torch.arange(len(order))
+    rank[order] = torch.arange(len(order), device=order.device)
     return table[order], rank[inverse].reshape(modes.shape[:-1]), counts[order]
 
 

@@ -196,15 +196,16 @@ class SimulatorParticleFilter:
             )
         batch, N = prior.batch_shape, self.num_particles
         chol = torch.linalg.cholesky(prior.cov)
-        noise = torch.randn(*batch, N, tangent, 1, generator=generator, dtype=prior.dtype)
+        dtype, device = prior.dtype, prior.mean.device
+        noise = torch.randn(*batch, N, tangent, 1, generator=generator, dtype=dtype, device=device)
         delta = (chol.unsqueeze(-3) @ noise).squeeze(-1)
         mean = prior.mean.unsqueeze(-2).expand(*batch, N, size)
         particles = SE3.retract(mean, delta) if spatial else mean + delta
         return SimulatorPFBelief(
             particles=particles,
-            modes=torch.zeros(*batch, N, self.scene.num_slots, dtype=torch.long),
-            log_weights=torch.full((*batch, N), -math.log(N), dtype=prior.dtype),
-            log_evidence=torch.zeros(batch, dtype=prior.dtype),
+            modes=torch.zeros(*batch, N, self.scene.num_slots, dtype=torch.long, device=device),
+            log_weights=torch.full((*batch, N), -math.log(N), dtype=dtype, device=device),
+            log_evidence=torch.zeros(batch, dtype=dtype, device=device),
             stepped=False,
         )
 
@@ -258,7 +259,9 @@ class SimulatorParticleFilter:
         simulated = torch.cat([result.state.q[..., 0, :], result.state.v[..., 0, :]], -1)
         x = torch.where(unsolved[..., None], x, simulated)
         noise = self.process_std.to(x)
-        delta = noise * torch.randn(*batch, N, noise.shape[-1], generator=generator, dtype=x.dtype)
+        delta = noise * torch.randn(
+            *batch, N, noise.shape[-1], generator=generator, dtype=x.dtype, device=x.device
+        )
         x = SE3.retract(x, delta) if spatial else x + delta
         mode = torch.where(unsolved[..., None], 0, result.mode)
         log_w = torch.where(unsolved, -math.inf, 0.0).to(x.dtype)
@@ -276,8 +279,10 @@ class SimulatorParticleFilter:
         seen = torch.isfinite(y).all(-1)
         if spatial:
             # Unmeasured entries get a placeholder pose (their residual is discarded).
-            placeholder = torch.tensor([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=x.dtype)
-            measured = torch.where(seen[..., None], y, placeholder.to(x.device))
+            placeholder = torch.tensor(
+                [0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0], dtype=x.dtype, device=x.device
+            )
+            measured = torch.where(seen[..., None], y, placeholder)
             residual = SE3.local(x[..., :7], measured.unsqueeze(-2).expand(*batch, N, 7))
         else:
             residual = x[..., :3] - y.unsqueeze(-2)

@@ -952,7 +952,9 @@ class SpatialContactModel(ContactModelFields):
     def _H(self) -> Tensor:
         """``(K, 6, 12)``: the camera measures the pose's tangent, in every mode."""
         H = self.Q.new_zeros(OBS_TANGENT_DIM, TANGENT_DIM)
-        H[:, :OBS_TANGENT_DIM] = torch.eye(OBS_TANGENT_DIM, dtype=self.Q.dtype)
+        H[:, :OBS_TANGENT_DIM] = torch.eye(
+            OBS_TANGENT_DIM, dtype=self.Q.dtype, device=self.Q.device
+        )
         return H.expand(self.num_modes, OBS_TANGENT_DIM, TANGENT_DIM)
 
     @property
@@ -1226,9 +1228,8 @@ def check_control(
     if control is None:
         if Nj or Nk:
             raise ValueError("control: required, the scene has robots or kinematic bodies")
-        control = RobotControl(
-            q_robot=torch.zeros(0, dtype=dtype), v_robot=torch.zeros(0, dtype=dtype)
-        )
+        empty = torch.zeros(0, dtype=dtype, device=device)
+        control = RobotControl(q_robot=empty, v_robot=empty)
     if not isinstance(control, RobotControl):
         raise ValueError(f"control: expected a RobotControl, got {type(control).__name__}")
     bases = [member.base_pose for member in scene.robots]

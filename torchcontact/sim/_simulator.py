@@ -251,7 +251,7 @@ class Simulator:
         if scene.dimension == 3:
             for name, value in (("q", q), ("q_kinematic", q_kinematic)):
                 check_unit_rows(f"{name}[..., 3:] (quaternions)", value[..., 3:])
-        mode = torch.zeros(*batch, scene.num_slots, dtype=torch.long)
+        mode = torch.zeros(*batch, scene.num_slots, dtype=torch.long, device=q.device)
         joints, robots = scene.num_robot_joints, len(scene.robots)
         if q_robot is None:
             if joints:
