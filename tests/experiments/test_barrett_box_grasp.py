@@ -76,6 +76,7 @@ def test_metrics_of_hand_made_estimates() -> None:
         tip=tip,
         true_states=true_states,
         state_probs=probs,
+        pair_names=("a", "b"),
         wall=2.0,
         cpu=1.5,
     )
@@ -85,6 +86,8 @@ def test_metrics_of_hand_made_estimates() -> None:
         "rot_rmse_deg": 10.0 * math.sqrt(0.4),
         "rot_rmse_occ_deg": 10.0,
         "state_accuracy": 7 / 8,
+        "state_accuracy_a": 1.0,
+        "state_accuracy_b": 3 / 4,  # wrong in trial 0 of 4
         # per (step, trial): trials 1..3 have 2 log 0.7, trial 0 has log 0.7 + log 0.2
         "state_logprob": (3 * 2 * math.log(0.7) + math.log(0.7) + math.log(0.2)) / 4,
         "tip_trials": 2.0,

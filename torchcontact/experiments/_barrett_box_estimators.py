@@ -27,6 +27,7 @@ from torch import Tensor
 
 from torchcontact.contact import Method
 from torchcontact.experiments._barrett_box import (
+    BOX_PAIRS,
     F64,
     BarrettBoxGrasp,
     BoxTrials,
@@ -509,6 +510,7 @@ def score_box_estimators(trials: BoxTrials, runs: BoxEstimatorRuns) -> dict[str,
             tip=first_tip_step(out["pose"]),
             true_states=trials.states if has_states else None,
             state_probs=out["state_probs"] if has_states else None,
+            pair_names=BOX_PAIRS if has_states else None,
             wall=timing.wall,
             cpu=timing.cpu,
         )

@@ -4,6 +4,7 @@ detection and time per step, one function for every method."""
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 from torch import Tensor
@@ -30,6 +31,7 @@ def box_tracking_metrics(
     tip: Tensor,
     true_states: Tensor | None = None,
     state_probs: Tensor | None = None,
+    pair_names: Sequence[str] | None = None,
     wall: float | None = None,
     cpu: float | None = None,
 ) -> dict[str, float]:
@@ -41,7 +43,8 @@ def box_tracking_metrics(
       (:func:`geodesic_angle`, degrees);
     * with the contact states: ``state_accuracy``, the share of (step, trial, pair) whose
       most probable state is the true one, and ``state_logprob``, the mean over (step,
-      trial) of ``Σ_pairs log p(true state)`` (probabilities clamped at 1e-12);
+      trial) of ``Σ_pairs log p(true state)`` (probabilities clamped at 1e-12); with
+      ``pair_names``, ``state_accuracy_<name>`` of each pair;
     * tip-over, over the trials that tip (``true_tip >= 0``): ``tip_within``, the share
       detected within :data:`TIP_TOLERANCE` steps of the truth, and ``tip_step_error``, the
       mean ``|tip − true_tip|`` of those detected at all (NaN when none is);
@@ -57,6 +60,7 @@ def box_tracking_metrics(
         tip: ``(B,)`` long detected tip-over step, ``-1`` for none.
         true_states: ``(T, B, P)`` long true contact state per pair (values in ``[0, C)``).
         state_probs: ``(T, B, P, C)`` the method's probability of each state.
+        pair_names: ``P`` names of the pairs, for the per-pair accuracies.
         wall: wall-clock seconds of the method's run.
         cpu: CPU seconds of the method's run.
 
@@ -89,7 +93,15 @@ def box_tracking_metrics(
                 f"got {tuple(state_probs.shape)}"
             )
         # The index of a state is exact: equal longs mean the same state.
-        row["state_accuracy"] = float((state_probs.argmax(-1) == true_states).double().mean())
+        right = (state_probs.argmax(-1) == true_states).double()
+        row["state_accuracy"] = float(right.mean())
+        if pair_names is not None:
+            if len(pair_names) != true_states.shape[-1]:
+                raise ValueError(
+                    f"pair_names: expected {true_states.shape[-1]} names, got {len(pair_names)}"
+                )
+            for name, share in zip(pair_names, right.mean((0, 1)).tolist(), strict=True):
+                row[f"state_accuracy_{name}"] = share
         p_true = state_probs.gather(-1, true_states[..., None]).squeeze(-1)
         row["state_logprob"] = float(p_true.clamp_min(1e-12).log().sum(-1).mean())
     tips = true_tip >= 0
