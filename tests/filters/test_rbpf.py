@@ -4,6 +4,7 @@ identical modes) and the exact posterior of a small switching system by enumerat
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -576,27 +577,40 @@ def _state_dependent_slope() -> np.ndarray:
     return np.random.default_rng(21).normal(scale=0.8, size=(K, K, N_STATE))
 
 
-def _enumerate_state_dependent(problem: Problem, slope: np.ndarray, steps: int) -> float:
-    """log p(y_1:steps) by recursion over every mode path, each with its own Kalman filter."""
+def _enumerate(
+    problem: Problem, steps: int, log_children: Callable[[int, np.ndarray], np.ndarray]
+) -> float:
+    """log Σ over every mode path of its weight and p(y_1:steps | path), each path with its
+    own Kalman filter: a step from mode ``m`` with filtered mean ``x̂`` to mode ``k`` weighs
+    ``exp(log_children(m, x̂)[k])``."""
     a = problem.arrays
-    log_t = np.log(a["transition"][0])
 
     def visit(t: int, mode: int, m: np.ndarray, P: np.ndarray, log_p: float) -> list[float]:
         if t == steps:
             return [log_p]
-        logits = log_t[mode] + slope[mode] @ m
-        log_rows = logits - np.logaddexp.reduce(logits)
+        log_w = log_children(mode, m)
         out = []
         for k in range(K):
             m_k, P_k = ref.kf_predict(m, P, a["F"][k], a["c"][k], a["Q"][k])
             m_k, P_k, ll = ref.kf_update(m_k, P_k, problem.ys[t], a["H"][k], a["d"][k], a["R"][k])
-            out += visit(t + 1, k, m_k, P_k, log_p + log_rows[k] + ll)
+            out += visit(t + 1, k, m_k, P_k, log_p + log_w[k] + ll)
         return out
 
     leaves = []
     for k0 in range(K):
         leaves += visit(0, k0, np.zeros(N_STATE), np.eye(N_STATE), math.log(a["initial"][k0]))
     return float(np.logaddexp.reduce(np.array(leaves)))
+
+
+def _enumerate_state_dependent(problem: Problem, slope: np.ndarray, steps: int) -> float:
+    """log p(y_1:steps) of the transition ∝ transition[m] · exp(slope[m] · x̂)."""
+    log_t = np.log(problem.arrays["transition"][0])
+
+    def log_rows(mode: int, m: np.ndarray) -> np.ndarray:
+        logits = log_t[mode] + slope[mode] @ m
+        return logits - np.logaddexp.reduce(logits)
+
+    return _enumerate(problem, steps, log_rows)
 
 
 def test_transition_rows_equal_enumeration_of_a_state_dependent_transition() -> None:
@@ -620,6 +634,17 @@ def test_transition_rows_equal_enumeration_of_a_state_dependent_transition() -> 
     assert abs(other.log_evidence.item() - exact) > 1e-3
 
 
+def _seeded_run(model: LinearSwitchingModel, problem: Problem, proposal: str) -> RBPFBelief:
+    """32 particles, batch 4, over the problem's T steps with fixed seeds."""
+    rbpf = RBPF(model, 32, proposal=proposal)  # type: ignore[arg-type]
+    gen = torch.Generator().manual_seed(3)
+    torch.manual_seed(5)  # init draws from torch's default generator
+    belief = rbpf.init(_prior(), batch_shape=(4,))
+    for t in range(T):
+        belief = rbpf.step(belief, torch.tensor(problem.ys[t]), generator=gen)
+    return belief
+
+
 @pytest.mark.parametrize("proposal", ["bootstrap", "all_modes"])
 def test_transition_rows_from_the_matrix_reproduce_the_plain_filter(proposal: str) -> None:
     problem = _problem(seed=7)
@@ -627,43 +652,9 @@ def test_transition_rows_from_the_matrix_reproduce_the_plain_filter(proposal: st
     fields["transition"] = fields["transition"][0]
     zero = torch.zeros(K, K, N_STATE, dtype=F64)
     rows_model = _StateDependentModel(**fields, slope=zero)
-    results = []
-    for model in (problem.model(), rows_model):
-        rbpf = RBPF(model, 32, proposal=proposal)  # type: ignore[arg-type]
-        gen = torch.Generator().manual_seed(3)
-        torch.manual_seed(5)  # init draws from torch's default generator
-        belief = rbpf.init(_prior(), batch_shape=(4,))
-        for t in range(T):
-            belief = rbpf.step(belief, torch.tensor(problem.ys[t]), generator=gen)
-        results.append(belief)
-    plain, rows = results
+    plain, rows = (_seeded_run(model, problem, proposal) for model in (problem.model(), rows_model))
     torch.testing.assert_close(rows.log_evidence, plain.log_evidence, rtol=1e-12, atol=1e-12)
     assert torch.equal(rows.modes, plain.modes)
-
-
-@pytest.mark.parametrize(
-    ("rows", "match"),
-    [
-        (torch.full((5, K), 0.5, dtype=F64), "summing to 1"),
-        (torch.tensor([[1.5, -0.5, 0.0]], dtype=F64).expand(5, K), "non-negative"),
-        (torch.full((4, K), 1.0 / K, dtype=F64), "transition_rows"),
-        (torch.full((2, 5, K), 1.0 / K, dtype=F64), "broadcast"),
-    ],
-)
-def test_transition_rows_are_validated(rows: torch.Tensor, match: str) -> None:
-    problem = _problem(seed=7)
-
-    @dataclass(frozen=True, eq=False, kw_only=True)
-    class Fixed(LinearSwitchingModel):
-        def mode_dynamics(self, belief: RBPFBelief, control: object) -> ModeDynamics:
-            return replace(super().mode_dynamics(belief, control), transition_rows=rows)
-
-    fields = {k: torch.tensor(v, dtype=F64) for k, v in problem.arrays.items()}
-    fields["transition"] = fields["transition"][0]
-    rbpf = RBPF(Fixed(**fields), 5)
-    belief = rbpf.init(_prior())
-    with pytest.raises(ValueError, match=match):
-        rbpf.step(belief, torch.tensor(problem.ys[0]))
 
 
 # --------------------------------------------------------------------------------------------
@@ -691,23 +682,8 @@ def _enumerate_weighted(problem: Problem, slope: np.ndarray, steps: int) -> floa
     """log Σ over every mode path of p(path, y_1:steps) Π_t exp(slope[k_t] · x̂_{t-1}), x̂ the
     path's filtered mean before step t: what the all-modes RBPF with one particle per path
     reports as its log-evidence."""
-    a = problem.arrays
-    log_t = np.log(a["transition"][0])
-
-    def visit(t: int, mode: int, m: np.ndarray, P: np.ndarray, log_p: float) -> list[float]:
-        if t == steps:
-            return [log_p]
-        out = []
-        for k in range(K):
-            m_k, P_k = ref.kf_predict(m, P, a["F"][k], a["c"][k], a["Q"][k])
-            m_k, P_k, ll = ref.kf_update(m_k, P_k, problem.ys[t], a["H"][k], a["d"][k], a["R"][k])
-            out += visit(t + 1, k, m_k, P_k, log_p + log_t[mode, k] + slope[k] @ m + ll)
-        return out
-
-    leaves = []
-    for k0 in range(K):
-        leaves += visit(0, k0, np.zeros(N_STATE), np.eye(N_STATE), math.log(a["initial"][k0]))
-    return float(np.logaddexp.reduce(np.array(leaves)))
+    log_t = np.log(problem.arrays["transition"][0])
+    return _enumerate(problem, steps, lambda mode, m: log_t[mode] + slope @ m)
 
 
 def test_particle_log_weight_equals_enumeration() -> None:
@@ -746,17 +722,9 @@ def test_particle_log_weight_shared_by_the_particles_is_the_mode_log_weight(prop
             rows = weight.expand(*belief.modes.shape, K)  # (*B, N, K)
             return replace(super().mode_dynamics(belief, control), particle_log_weight=rows)
 
-    models = (Shared(**fields), PerParticle(**fields))
-    results = []
-    for model in models:
-        rbpf = RBPF(model, 32, proposal=proposal)  # type: ignore[arg-type]
-        gen = torch.Generator().manual_seed(3)
-        torch.manual_seed(5)  # init draws from torch's default generator
-        belief = rbpf.init(_prior(), batch_shape=(4,))
-        for t in range(T):
-            belief = rbpf.step(belief, torch.tensor(problem.ys[t]), generator=gen)
-        results.append(belief)
-    shared, per_particle = results
+    shared, per_particle = (
+        _seeded_run(model, problem, proposal) for model in (Shared(**fields), PerParticle(**fields))
+    )
     torch.testing.assert_close(
         per_particle.log_evidence, shared.log_evidence, rtol=1e-12, atol=1e-12
     )
@@ -765,21 +733,29 @@ def test_particle_log_weight_shared_by_the_particles_is_the_mode_log_weight(prop
 
 
 @pytest.mark.parametrize(
-    ("weight", "match"),
+    ("field", "value", "match"),
     [
-        (torch.full((5, K), math.nan, dtype=F64), "particle_log_weight"),
-        (torch.full((5, K), math.inf, dtype=F64), "particle_log_weight"),
-        (torch.zeros(4, K, dtype=F64), "particle_log_weight"),
-        (torch.zeros(2, 5, K, dtype=F64), "broadcast"),
+        ("transition_rows", torch.full((5, K), 0.5, dtype=F64), "summing to 1"),
+        (
+            "transition_rows",
+            torch.tensor([[1.5, -0.5, 0.0]], dtype=F64).expand(5, K),
+            "non-negative",
+        ),
+        ("transition_rows", torch.full((4, K), 1.0 / K, dtype=F64), "transition_rows"),
+        ("transition_rows", torch.full((2, 5, K), 1.0 / K, dtype=F64), "broadcast"),
+        ("particle_log_weight", torch.full((5, K), math.nan, dtype=F64), "particle_log_weight"),
+        ("particle_log_weight", torch.full((5, K), math.inf, dtype=F64), "particle_log_weight"),
+        ("particle_log_weight", torch.zeros(4, K, dtype=F64), "particle_log_weight"),
+        ("particle_log_weight", torch.zeros(2, 5, K, dtype=F64), "broadcast"),
     ],
 )
-def test_particle_log_weight_is_validated(weight: torch.Tensor, match: str) -> None:
+def test_per_particle_dynamics_are_validated(field: str, value: torch.Tensor, match: str) -> None:
     problem = _problem(seed=7)
 
     @dataclass(frozen=True, eq=False, kw_only=True)
     class Fixed(LinearSwitchingModel):
         def mode_dynamics(self, belief: RBPFBelief, control: object) -> ModeDynamics:
-            return replace(super().mode_dynamics(belief, control), particle_log_weight=weight)
+            return replace(super().mode_dynamics(belief, control), **{field: value})
 
     fields = {k: torch.tensor(v, dtype=F64) for k, v in problem.arrays.items()}
     fields["transition"] = fields["transition"][0]
