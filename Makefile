@@ -36,18 +36,22 @@ docs: venv
 		&& rm -rf "$$site"
 
 # The suite on every core (pytest-xdist), one torch thread per worker, with the CPU's own
-# (AVX2 or AVX-512) kernels.
+# (AVX2 or AVX-512) kernels. Each worker takes whole files (their module fixtures are built
+# once) in collection order, where tests/conftest.py puts the files with slow tests first:
+# xdist's default order (most tests first) would start those few-test, minutes-long files last.
+XDIST := -n $(WORKERS) --dist loadfile --no-loadscope-reorder
 pytest: venv
-	OMP_NUM_THREADS=1 MPLBACKEND=Agg $(PY) -m pytest -n $(WORKERS) --dist loadfile
+	OMP_NUM_THREADS=1 MPLBACKEND=Agg $(PY) -m pytest $(XDIST)
 
 # The numerical tests again on other floating-point kernels: MKL's CPU-independent code path
 # (MKL_CBWR=COMPATIBLE) and two torch threads, where the run above used the CPU's own kernels
 # and one thread. A test that judges digits the kernels or the threads decide fails here on any
-# machine, not only on another CPU. The tests marked slow (compiling a model: minutes) run once,
-# above.
+# machine, not only on another CPU. The workers share the cores as above; each still runs two
+# torch threads (a parallel kernel splits its work in two whatever the load), so the digits are
+# the two-thread ones. The tests marked slow (compiling a model: minutes) run once, above.
 pytest-portable: venv
 	MKL_CBWR=COMPATIBLE OMP_NUM_THREADS=2 MPLBACKEND=Agg $(PY) -m pytest -q -p no:cacheprovider \
-		-m "not slow" tests/contact tests/sim tests/filters tests/envs tests/states
+		$(XDIST) -m "not slow" tests/contact tests/sim tests/filters tests/envs tests/states
 
 # `docs` is not a step of `test`: tests/test_docs.py builds the site in strict mode.
 test: lint typecheck pytest pytest-portable

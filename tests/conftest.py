@@ -65,6 +65,17 @@ def _guard_array_equal(array_equal: Callable[..., None]) -> Callable[..., None]:
     return guarded
 
 
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    """Put the files holding a test marked ``slow`` first, each file's tests in their order.
+
+    ``make pytest`` hands each pytest-xdist worker whole files (``--dist loadfile``) in this
+    order (``--no-loadscope-reorder``). A slow test compiles a model for minutes; a file of
+    them started near the end would leave the other workers idle until it finishes.
+    """
+    slow = {item.path for item in items if item.get_closest_marker("slow") is not None}
+    items.sort(key=lambda item: item.path not in slow)  # stable: the rest keep their order
+
+
 @pytest.fixture(autouse=True)
 def _floating_point_rules(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
     """Reject digit-exact comparisons of floating-point results in unmarked tests."""

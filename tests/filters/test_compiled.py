@@ -121,6 +121,7 @@ def test_compiled_rbpf_refactors_semidefinite_covariances() -> None:
     _assert_beliefs_close(*beliefs, rtol=1e-10, atol=1e-12)
 
 
+@pytest.mark.slow  # compiles the linearization and the RBPF's kernels: minutes on a CPU
 def test_compiled_contact_model_equals_eager(monkeypatch: pytest.MonkeyPatch) -> None:
     model, x, control = _linearization_cases()[0]
     compiled = replace(model, compiled=True)

@@ -36,6 +36,7 @@ def _tiny(module: ModuleType, out: Path, **changes: object) -> object:
         eval_episodes=2,
         final_episodes=3,
         particles=24,
+        mode_episodes=8,  # the physics model's greedy episodes: no test judges its fit
     )
     return dataclasses.replace(args, **changes)
 
@@ -45,10 +46,25 @@ def module() -> ModuleType:
     return load_script("dyna_q_peg")
 
 
-def test_runs_and_writes_its_artefacts(module: ModuleType, tmp_path: Path) -> None:
-    args = _tiny(module, tmp_path)
-    result = module.run(args)
+@pytest.fixture(scope="module")
+def straight(module: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """The tiny run (two rounds) without interruption; the tests only read its folder."""
+    result: dict[str, Any] = module.run(_tiny(module, tmp_path_factory.mktemp("straight")))
+    return result
+
+
+@pytest.fixture(scope="module")
+def straight_three(module: ModuleType, tmp_path_factory: pytest.TempPathFactory) -> dict[str, Any]:
+    """Three rounds without interruption; the tests only read its folder."""
+    out = tmp_path_factory.mktemp("straight_three")
+    result: dict[str, Any] = module.run(_tiny(module, out, rounds=3))
+    return result
+
+
+def test_runs_and_writes_its_artefacts(module: ModuleType, straight: dict[str, Any]) -> None:
+    result = straight
     run_dir = Path(result["run_dir"])
+    args = _tiny(module, run_dir.parent)
     assert_logged(run_dir, [f.name for f in dataclasses.fields(args)], dataclasses.asdict(args))
     artefacts = ("results.md", "q_table.pt", "graph.json", "graph.png", "learning.png")
     for name in (*artefacts, "checkpoint.pt"):
@@ -109,9 +125,8 @@ def test_a_finished_run_is_evaluated_again_without_training(
 
 @pytest.mark.bitwise("a resumed run runs the same code on the same inputs in the same process")
 def test_resuming_from_a_checkpoint_reproduces_the_uninterrupted_run(
-    module: ModuleType, tmp_path: Path
+    module: ModuleType, straight: dict[str, Any], tmp_path: Path
 ) -> None:
-    straight = module.run(_tiny(module, tmp_path))
     stopped = module.run(_tiny(module, tmp_path, rounds=1))
     resumed = module.run(_tiny(module, tmp_path, resume=stopped["run_dir"]))
     assert resumed["run_dir"] == stopped["run_dir"] != straight["run_dir"]
@@ -142,9 +157,11 @@ class _KilledError(Exception):
 
 @pytest.mark.bitwise("a resumed run runs the same code on the same inputs in the same process")
 def test_a_run_killed_after_any_checkpoint_resumes_to_an_identical_result(
-    module: ModuleType, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    module: ModuleType,
+    straight_three: dict[str, Any],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    straight = module.run(_tiny(module, tmp_path, rounds=3))
     save = module.save_checkpoint
     for killed_after in (1, 2):
         writes: list[Path] = []
@@ -165,13 +182,15 @@ def test_a_run_killed_after_any_checkpoint_resumes_to_an_identical_result(
             module.run(_tiny(module, tmp_path, rounds=3))
         monkeypatch.setattr(module, "save_checkpoint", save)
         resumed = module.run(_tiny(module, tmp_path, rounds=3, resume=str(writes[0])))
-        _assert_identical(straight, resumed)
+        _assert_identical(straight_three, resumed)
 
 
 def test_a_kill_during_the_checkpoint_write_keeps_the_previous_checkpoint(
-    module: ModuleType, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+    module: ModuleType,
+    straight_three: dict[str, Any],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    straight = module.run(_tiny(module, tmp_path, rounds=3))
     stopped = module.run(_tiny(module, tmp_path, rounds=2))
     checkpoint = Path(stopped["run_dir"]) / "checkpoint.pt"
     before = checkpoint.read_bytes()
@@ -187,7 +206,7 @@ def test_a_kill_during_the_checkpoint_write_keeps_the_previous_checkpoint(
     assert checkpoint.read_bytes() == before
     assert not [p for p in checkpoint.parent.iterdir() if p.suffix == ".tmp"]
     resumed = module.run(_tiny(module, tmp_path, rounds=3, resume=stopped["run_dir"]))
-    _assert_identical(straight, resumed)
+    _assert_identical(straight_three, resumed)
 
 
 def test_a_damaged_checkpoint_is_named_when_resuming(module: ModuleType, tmp_path: Path) -> None:

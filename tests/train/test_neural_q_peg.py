@@ -23,24 +23,6 @@ def module() -> ModuleType:
     return load_script("neural_q_peg")
 
 
-@pytest.fixture(scope="module")
-def tabular_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A finished (tiny) Dyna-Q run to start from."""
-    tabular = load_script("dyna_q_peg")
-    out = tmp_path_factory.mktemp("tabular")
-    args = tabular.Args(
-        out_dir=str(out),
-        num_envs=4,
-        rounds=2,
-        max_steps=15,
-        eval_every=2,
-        eval_episodes=2,
-        final_episodes=2,
-        particles=24,
-    )
-    return Path(tabular.run(args)["run_dir"])
-
-
 def _tiny(module: ModuleType, out: Path, tabular: Path, **changes: object) -> object:
     args = module.Args(
         out_dir=str(out),

@@ -66,24 +66,6 @@ def test_raw_poses_carry_the_last_seen_pose_with_the_gripper() -> None:
         raw_poses({"peg_pose": [[0.0] * 3], "gripper_pose": [[np.inf, 0, 0]]}, held=hold[:1])
 
 
-@pytest.fixture(scope="module")
-def tabular_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A finished (tiny) Dyna-Q run with both belief models."""
-    tabular = load_script("dyna_q_peg")
-    args = tabular.Args(
-        out_dir=str(tmp_path_factory.mktemp("tabular")),
-        num_envs=4,
-        rounds=2,
-        max_steps=15,
-        eval_every=2,
-        eval_episodes=2,
-        final_episodes=0,
-        particles=24,
-        mode_episodes=8,
-    )
-    return Path(tabular.run(args)["run_dir"])
-
-
 def test_belief_features_have_the_class_marginals_under_the_physics_model(
     tabular_run: Path,
 ) -> None:
