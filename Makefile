@@ -46,12 +46,11 @@ pytest: venv
 # The numerical tests again on other floating-point kernels: MKL's CPU-independent code path
 # (MKL_CBWR=COMPATIBLE) and two torch threads, where the run above used the CPU's own kernels
 # and one thread. A test that judges digits the kernels or the threads decide fails here on any
-# machine, not only on another CPU. The workers share the cores as above; each still runs two
-# torch threads (a parallel kernel splits its work in two whatever the load), so the digits are
-# the two-thread ones. The tests marked slow (compiling a model: minutes) run once, above.
+# machine, not only on another CPU. One process: its two threads take both cores. The tests
+# marked slow (compiling a model: minutes) run once, above.
 pytest-portable: venv
 	MKL_CBWR=COMPATIBLE OMP_NUM_THREADS=2 MPLBACKEND=Agg $(PY) -m pytest -q -p no:cacheprovider \
-		$(XDIST) -m "not slow" tests/contact tests/sim tests/filters tests/envs tests/states
+		-m "not slow" tests/contact tests/sim tests/filters tests/envs tests/states
 
 # `docs` is not a step of `test`: tests/test_docs.py builds the site in strict mode.
 test: lint typecheck pytest pytest-portable

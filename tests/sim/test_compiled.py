@@ -94,6 +94,7 @@ def _assert_impulses(actual: torch.Tensor, expected: torch.Tensor, largest: torc
     torch.testing.assert_close(actual, expected, rtol=0.0, atol=scale)
 
 
+@pytest.mark.slow  # compiles the step: minutes on a CPU
 def test_compiled_boxes_follow_closed_form_physics() -> None:
     """A box sliding at 1 m/s (decelerates at μg, stops when predicted), one resting (no
     drift, carries its weight) and one falling freely (semi-implicit Euler: ``v_k = −g h k``,
@@ -123,6 +124,7 @@ def test_compiled_boxes_follow_closed_form_physics() -> None:
     assert float((run.solver[1:] == SOLVED_BY_GUESS).double().mean()) > 0.9
 
 
+@pytest.mark.slow  # compiles the step: minutes on a CPU
 def test_compiled_box_pushed_by_a_kinematic_finger_slides_at_its_speed() -> None:
     """One scene, unbatched, pushed at a constant speed u by a frictionless kinematic finger
     (the ``control`` input of the kernel): the box ends up sliding at u; the ground's normal
