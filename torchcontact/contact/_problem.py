@@ -176,6 +176,33 @@ class ContactProblem:
             cache[name] = compute()
         return cast(_T, cache[name])
 
+    def cached_at(self, name: str, inputs: tuple[Tensor, ...], compute: Callable[[], _T]) -> _T:
+        """``compute()`` of a candidate solution's ``inputs``, kept while the same are passed.
+
+        For quantities at one solution that several checks read (the constraint velocities at
+        ``v⁺``, the problem's scales at ``(v⁺, pn, pt)``): one entry per ``name``, replaced
+        when other inputs come. Inputs are the same when they are views of the same memory
+        with the same layout and version (a detached or reshaped solution is the same); the
+        entry keeps them referenced, so their memory cannot be reused meanwhile. Nothing is
+        kept where :meth:`cached` keeps nothing or an input requires grad.
+
+        Args:
+            name: the quantity's key, one per ``compute``.
+            inputs: the tensors ``compute`` reads besides the problem's fields.
+            compute: computes it.
+        """
+        if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
+            return compute()
+        key: tuple[object, ...] = tuple(
+            (t.untyped_storage().data_ptr(), t.storage_offset(), t.stride(), t.dtype, t._version)
+            for t in inputs
+        )
+        key += tuple(t.shape for t in inputs)
+        entry: dict[str, Any] = self.cached(f"{name} at", dict)
+        if entry.get("key") != key:
+            entry.update(key=key, inputs=inputs, value=compute())
+        return cast(_T, entry["value"])
+
     def mass_solve(self, rhs: Tensor) -> Tensor:
         """``M⁻¹ rhs`` by Cholesky factorization, differentiable.
 
@@ -270,7 +297,10 @@ class ContactProblem:
         return self.map_tensors(lambda t: t.reshape(*batch_shape, *t.shape[old:]))
 
     def flatten(self) -> ContactProblem:
-        """Return the problem with a single batch dimension ``(prod(*B),)``."""
+        """Return the problem with a single batch dimension ``(prod(*B),)`` (itself when it
+        has one: the quantities it keeps, :meth:`cached`, stay with it)."""
+        if len(self.batch_shape) == 1:
+            return self
         return self.reshape(math.prod(self.batch_shape))
 
     def __getitem__(self, index: Any) -> ContactProblem:
