@@ -208,7 +208,10 @@ class ContactProblem:
 
         A mass matrix shared by the whole batch (a field broadcast from ``(n, n)``, as
         assemblers build it) is factored once and solved with every right-hand side of the
-        batch as one block of columns, instead of once per batch entry.
+        batch as one block of columns, instead of once per batch entry. Where the problem
+        keeps ``M⁻¹`` (:meth:`cached` under ``"mass_inverse"``: an assembler that has it in
+        closed form, as the simulator for rigid bodies, ``diag(1/m, R I⁻¹ Rᵀ)``), it is one
+        product instead.
 
         Args:
             rhs: ``(*B, n, k)`` right-hand sides (``*B`` broadcasts to the problem's).
@@ -216,6 +219,9 @@ class ContactProblem:
         Returns:
             ``(*B, n, k)``.
         """
+        inverse = self.__dict__.get("_cache", {}).get("mass_inverse")
+        if inverse is not None:
+            return cast(Tensor, inverse @ rhs)
         M, batch = self.M, self.batch_shape
         shared = bool(batch) and 0 not in batch and all(s == 0 for s in M.stride()[: len(batch)])
         if not shared:
@@ -292,7 +298,10 @@ class ContactProblem:
         return mapped
 
     def reshape(self, *batch_shape: int) -> ContactProblem:
-        """Return the problem with its batch dimensions reshaped to ``batch_shape``."""
+        """Return the problem with its batch dimensions reshaped to ``batch_shape`` (itself
+        when they have that shape already)."""
+        if batch_shape == tuple(self.batch_shape):
+            return self
         old = len(self.batch_shape)
         return self.map_tensors(lambda t: t.reshape(*batch_shape, *t.shape[old:]))
 
