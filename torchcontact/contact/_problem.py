@@ -184,14 +184,17 @@ class ContactProblem:
         when other inputs come. Inputs are the same when they are views of the same memory
         with the same layout and version (a detached or reshaped solution is the same); the
         entry keeps them referenced, so their memory cannot be reused meanwhile. Nothing is
-        kept where :meth:`cached` keeps nothing or an input requires grad.
+        kept where :meth:`cached` keeps nothing (inside :func:`torch.compile`'s tracing, the
+        memory of a traced tensor is not known) or an input requires grad.
 
         Args:
             name: the quantity's key, one per ``compute``.
             inputs: the tensors ``compute`` reads besides the problem's fields.
             compute: computes it.
         """
-        if torch.is_grad_enabled() and any(t.requires_grad for t in inputs):
+        if torch.compiler.is_compiling() or (
+            torch.is_grad_enabled() and any(t.requires_grad for t in inputs)
+        ):
             return compute()
         key: tuple[object, ...] = tuple(
             (t.untyped_storage().data_ptr(), t.storage_offset(), t.stride(), t.dtype, t._version)
