@@ -185,22 +185,29 @@ class ContactProblem:
         with the same layout and version (a detached or reshaped solution is the same); the
         entry keeps them referenced, so their memory cannot be reused meanwhile. Nothing is
         kept where :meth:`cached` keeps nothing (inside :func:`torch.compile`'s tracing, the
-        memory of a traced tensor is not known) or an input requires grad.
+        memory of a traced tensor is not known), an input requires grad, or an input has no
+        memory or version of its own (an inference tensor, a tensor inside a
+        :mod:`torch.func` transform).
 
         Args:
             name: the quantity's key, one per ``compute``.
             inputs: the tensors ``compute`` reads besides the problem's fields.
             compute: computes it.
         """
-        if torch.compiler.is_compiling() or (
-            torch.is_grad_enabled() and any(t.requires_grad for t in inputs)
+        if (
+            torch.compiler.is_compiling()
+            or any(t.is_inference() for t in inputs)
+            or (torch.is_grad_enabled() and any(t.requires_grad for t in inputs))
         ):
             return compute()
-        key: tuple[object, ...] = tuple(
-            (t.untyped_storage().data_ptr(), t.storage_offset(), t.stride(), t.dtype, t._version)
-            for t in inputs
-        )
-        key += tuple(t.shape for t in inputs)
+        try:
+            key: tuple[object, ...] = tuple(
+                (t.untyped_storage().data_ptr(), t.storage_offset(), t.stride(), t._version)
+                for t in inputs
+            )
+            key += tuple((t.shape, t.dtype) for t in inputs)
+        except NotImplementedError:  # torch.func's wrapped tensors have no storage
+            return compute()
         entry: dict[str, Any] = self.cached(f"{name} at", dict)
         if entry.get("key") != key:
             entry.update(key=key, inputs=inputs, value=compute())
