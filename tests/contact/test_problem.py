@@ -8,7 +8,13 @@ import pytest
 import torch
 
 from tests.contact.boxes import box_problem, resting_state
-from torchcontact.contact import ContactProblem, planar_box_problem, solve
+from torchcontact.contact import (
+    ContactProblem,
+    is_consistent,
+    lcp_residual,
+    planar_box_problem,
+    solve,
+)
 
 
 def _fields() -> dict:
@@ -143,3 +149,25 @@ def test_quantities_kept_on_a_problem_follow_gradients_and_grad_mode() -> None:
     for _ in range(2):
         (grad,) = torch.autograd.grad(grad_problem.v_free().sum(), f)
         torch.testing.assert_close(grad, problem.h / diagonal, rtol=1e-14, atol=0.0)
+
+
+def test_checks_of_a_solution_changed_in_place_see_the_change() -> None:
+    """The constraint velocities and scales at a solution are kept on the problem for the
+    next check of the same tensors; a solution written over in place is a new one. A resting
+    box's exact (Lemke) step is consistent with its modes; its end velocity raised by 1 m/s
+    upwards separates both loaded corners at 1 m/s while they carry impulse (inconsistent, an
+    LCP residual of min(pn, 1 m/s) per corner), and restored it is consistent again."""
+    q, v = resting_state()
+    problem = box_problem(q=q, v=v)
+    solution = solve(problem, "lemke")
+    assert bool(is_consistent(problem, solution))
+    with torch.no_grad():
+        solution.v_next[..., 1] += 1.0
+    assert not bool(is_consistent(problem, solution))
+    expected = float(torch.minimum(solution.pn, torch.ones_like(solution.pn)).amax())
+    assert float(lcp_residual(problem, v_next=solution.v_next, pn=solution.pn, pt=solution.pt)) == (
+        pytest.approx(expected, rel=1e-9)
+    )
+    with torch.no_grad():
+        solution.v_next[..., 1] -= 1.0
+    assert bool(is_consistent(problem, solution))

@@ -191,19 +191,20 @@ def kinetic_energy(robot: Robot, q: torch.Tensor, qd: torch.Tensor) -> float:
 @pytest.mark.parametrize("name", ["hinge", "bhand", "wam7", "wam7_bhand", "parallel_jaw"])
 def test_mass_matrix_is_the_links_kinetic_energy(hinge: Robot, name: str) -> None:
     """½ q̇ᵀ M(q) q̇ equals the links' kinetic energy from finite differences of forward
-    kinematics, for random q and q̇ (enough q̇ to fix every entry of the symmetric M)."""
+    kinematics, for random q and q̇ (enough q̇ to fix every entry of the symmetric M); so
+    does M from the caller's link Jacobians (``links=``, as a simulator step passes them)."""
     robot = hinge if name == "hinge" else load(name)
     generator = torch.Generator().manual_seed(3)
     low, high = robot.lower.clamp(min=-2.0), robot.upper.clamp(max=2.0)
     for _ in range(2):
         q = low + (high - low) * torch.rand(robot.dof, generator=generator, dtype=torch.float64)
-        M = robot.mass_matrix(q)
-        torch.testing.assert_close(M, M.T, rtol=0, atol=1e-15)
-        for _ in range(robot.dof * (robot.dof + 1) // 2 + 1):
-            qd = torch.randn(robot.dof, generator=generator, dtype=torch.float64)
-            expected = kinetic_energy(robot, q, qd)
-            actual = 0.5 * float(qd @ M @ qd)
-            assert actual == pytest.approx(expected, rel=1e-7, abs=1e-12)
+        for M in (robot.mass_matrix(q), robot.mass_matrix(q, links=robot.link_jacobians(q))):
+            torch.testing.assert_close(M, M.T, rtol=0, atol=1e-15)
+            for _ in range(robot.dof * (robot.dof + 1) // 2 + 1):
+                qd = torch.randn(robot.dof, generator=generator, dtype=torch.float64)
+                expected = kinetic_energy(robot, q, qd)
+                actual = 0.5 * float(qd @ M @ qd)
+                assert actual == pytest.approx(expected, rel=1e-7, abs=1e-12)
     if name == "hinge":
         torch.testing.assert_close(
             robot.mass_matrix(torch.tensor([0.3], dtype=torch.float64)),
@@ -211,6 +212,24 @@ def test_mass_matrix_is_the_links_kinetic_energy(hinge: Robot, name: str) -> Non
             rtol=1e-12,
             atol=0.0,
         )
+
+
+def test_mass_matrix_rejects_links_that_do_not_fit_q() -> None:
+    robot = load("bhand")
+    q = torch.zeros(2, robot.dof, dtype=torch.float64)
+    transforms, jacobians = robot.link_jacobians(q)
+    with pytest.raises(ValueError, match="links must be the pair"):
+        robot.mass_matrix(q, links=[transforms, jacobians])  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"links\[0\]"):
+        robot.mass_matrix(q, links=(transforms[0], jacobians))
+    with pytest.raises(ValueError, match=r"links\[1\]"):
+        robot.mass_matrix(q, links=(transforms, jacobians[..., :-1]))
+    with pytest.raises(ValueError, match=r"links\[1\]"):
+        robot.mass_matrix(q, links=(transforms, jacobians.float()))
+    bad = jacobians.clone()
+    bad[0, 0, 0, 0] = float("nan")
+    with pytest.raises(ValueError, match=r"links\[1\]"):
+        robot.mass_matrix(q, links=(transforms, bad))
 
 
 def far_box(batch: int = 1) -> torch.Tensor:

@@ -112,11 +112,7 @@ def free_constraint_velocity(problem: ContactProblem, *, v_free: Tensor) -> Tens
         v_free: ``(*B, n)`` its contact-free velocity, ``problem.v_free()`` (passed in so
             callers that need it too factor ``M`` once).
     """
-    J = contact_jacobian(problem)
-    bias = torch.cat(
-        [problem.b_normal + problem.phi / problem.h, problem.b_tangent.flatten(-2, -1)], dim=-1
-    )
-    return (J @ v_free.unsqueeze(-1)).squeeze(-1) + bias
+    return _rows_times(problem, v_free) + _bias(problem)
 
 
 def velocity_terms(problem: ContactProblem, v_next: Tensor) -> tuple[Tensor, Tensor]:
@@ -129,10 +125,39 @@ def velocity_terms(problem: ContactProblem, v_next: Tensor) -> tuple[Tensor, Ten
     Returns:
         ``gap_rate (*B, K) = Jn v⁺ + bn + φ/h`` and ``slip (*B, K, D) = Jt v⁺ + bt``.
     """
-    gap_rate = (problem.Jn @ v_next.unsqueeze(-1)).squeeze(-1)
-    gap_rate = gap_rate + problem.b_normal + problem.phi / problem.h
-    slip = (problem.Jt @ v_next.unsqueeze(-1).unsqueeze(-3)).squeeze(-1) + problem.b_tangent
-    return gap_rate, slip
+    return problem.cached_at(
+        "velocity_terms",
+        (v_next,),
+        lambda: _split_rows(problem, _rows_times(problem, v_next) + _bias(problem)),
+    )
+
+
+def _rows_times(problem: ContactProblem, v: Tensor) -> Tensor:
+    """``(*B, K + K·D)`` the stacked rows times ``v (*B, n)``: ``J v``.
+
+    One batched product with the stacked rows (:func:`contact_jacobian`, kept on the problem)
+    instead of one per block: a product with ``Jt (*B, K, D, n)`` broadcast against ``v``
+    copies ``v`` once per slot first.
+    """
+    J = problem.cached("contact_jacobian", lambda: contact_jacobian(problem))
+    return (J @ v.unsqueeze(-1)).squeeze(-1)
+
+
+def _bias(problem: ContactProblem) -> Tensor:
+    """``(*B, K + K·D)`` the constant terms of the constraint velocities, ``[bn + φ/h; bt]``."""
+    return problem.cached(
+        "bias",
+        lambda: torch.cat(
+            [problem.b_normal + problem.phi / problem.h, problem.b_tangent.flatten(-2, -1)],
+            dim=-1,
+        ),
+    )
+
+
+def _split_rows(problem: ContactProblem, stacked: Tensor) -> tuple[Tensor, Tensor]:
+    """``(*B, K)`` normal and ``(*B, K, D)`` friction parts of stacked row values."""
+    K, D = problem.num_slots, problem.num_directions
+    return stacked[..., :K], stacked[..., K:].unflatten(-1, (K, D))
 
 
 def lcp_residual(problem: ContactProblem, *, v_next: Tensor, pn: Tensor, pt: Tensor) -> Tensor:
@@ -207,14 +232,50 @@ def _scales(
 
     The constraint velocities the impulses cause are those at ``v_next`` less those at
     ``v_free``; every term that depends on the problem alone is computed once per problem
-    (:meth:`ContactProblem.cached`) unless the caller passes its own ``v_free``.
+    (:meth:`ContactProblem.cached`) unless the caller passes its own ``v_free``, and so are
+    the scales of the last solution checked (:meth:`ContactProblem.cached_at`: the
+    simulator's consistency check and its canonical modes read the same solution).
     """
-    tiny = torch.finfo(problem.dtype).tiny
     if v_free is None:
-        v_free = problem.v_free()
-        free = problem.cached("free_terms", lambda: _free_terms(problem, v_free))
-    else:
-        free = _free_terms(problem, v_free)
+        return problem.cached_at(
+            "scales",
+            (v_next, pn, pt),
+            lambda: _scales_from(
+                problem,
+                v_next=v_next,
+                pn=pn,
+                pt=pt,
+                gap_rate=gap_rate,
+                slip=slip,
+                v_free=problem.v_free(),
+                free=problem.cached("free_terms", lambda: _free_terms(problem, problem.v_free())),
+            ),
+        )
+    return _scales_from(
+        problem,
+        v_next=v_next,
+        pn=pn,
+        pt=pt,
+        gap_rate=gap_rate,
+        slip=slip,
+        v_free=v_free,
+        free=_free_terms(problem, v_free),
+    )
+
+
+def _scales_from(
+    problem: ContactProblem,
+    *,
+    v_next: Tensor,
+    pn: Tensor,
+    pt: Tensor,
+    gap_rate: Tensor,
+    slip: Tensor,
+    v_free: Tensor,
+    free: tuple[Tensor, Tensor, Tensor, Tensor],
+) -> tuple[Tensor, Tensor]:
+    """:func:`_scales` from the contact-free velocity and its :func:`_free_terms`."""
+    tiny = torch.finfo(problem.dtype).tiny
     free_gap, free_slip, slot_scale, impulse_floor = free
     caused = torch.maximum((gap_rate - free_gap).abs(), (slip - free_slip).abs().amax(dim=-1))
     per_slot = torch.maximum(slot_scale, caused)
@@ -236,8 +297,7 @@ def _free_terms(problem: ContactProblem, v_free: Tensor) -> tuple[Tensor, Tensor
         impulses' share (``|J v_free|``, ``|b|``, ``−φ/h`` where penetrating); the
         ``(*B, 1)`` impulse scale without the solution's share (``|M v|``, ``|h f|``).
     """
-    Jn_v = (problem.Jn @ v_free.unsqueeze(-1)).squeeze(-1)
-    Jt_v = (problem.Jt @ v_free.unsqueeze(-1).unsqueeze(-3)).squeeze(-1)
+    Jn_v, Jt_v = _split_rows(problem, _rows_times(problem, v_free))
     known = torch.maximum(problem.b_normal.abs(), problem.b_tangent.abs().amax(dim=-1))
     slot_scale = torch.maximum(Jn_v.abs(), Jt_v.abs().amax(dim=-1))
     slot_scale = torch.maximum(slot_scale, known)

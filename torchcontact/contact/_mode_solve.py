@@ -256,7 +256,7 @@ def solve_mode_unchecked(
         )
     else:
         pt_slide = one_hot(first, D).to(problem.dtype) * (slide_mu * pn).unsqueeze(-1)
-    pt_stick = _bracket_decomposition(Jt, tangential, sticking)
+    pt_stick = _bracket_decomposition(Jt, tangential, sticking, sync_free=sync_free)
     pt = torch.where(sticking.unsqueeze(-1), pt_stick, pt_slide)
 
     equality_error = _largest((A @ x_rows.unsqueeze(-1)).squeeze(-1) - b)
@@ -510,7 +510,9 @@ def _impulse_coordinates(
     return torch.where(rows_active, x, torch.zeros((), dtype=Jt.dtype, device=Jt.device))
 
 
-def _bracket_decomposition(Jt: Tensor, tangential: Tensor, sticking: Tensor) -> Tensor:
+def _bracket_decomposition(
+    Jt: Tensor, tangential: Tensor, sticking: Tensor, *, sync_free: bool = False
+) -> Tensor:
     """Write tangential impulses as non-negative friction-direction components.
 
     Args:
@@ -518,21 +520,50 @@ def _bracket_decomposition(Jt: Tensor, tangential: Tensor, sticking: Tensor) -> 
         tangential: ``(*B, K, r)`` impulse coordinates along the tangent basis (direction 0,
             or directions 0 and 1 when spatial).
         sticking: ``(*B, K)`` bool; other slots return zeros.
+        sync_free: decompose every slot's impulse (no host synchronisation) instead of the
+            sticking slots' alone (gathered first: a step's sticking slots are usually a
+            small share of all). The results are the same.
 
     Returns:
         ``(*B, K, D)`` components ``pt ≥ 0`` with ``Σ_d pt_d Jt_d = Σ_j λ_j Jt_j``, using the
         two adjacent directions whose cone contains the impulse (planar: ``+t`` or ``-t``).
     """
-    D = Jt.shape[-2]
+    *batch, K, D, n = Jt.shape
     zero = torch.zeros((), dtype=Jt.dtype, device=Jt.device)
     if D == 2:
         lam = tangential[..., 0]
         pt = torch.stack([lam.clamp(min=0.0), (-lam).clamp(min=0.0)], dim=-1)
         return torch.where(sticking.unsqueeze(-1), pt, zero)
+    if sync_free or torch.compiler.is_compiling() or Jt.shape[:-2] != sticking.shape:
+        return _bracket_components(Jt, tangential, sticking)
+    slots = torch.nonzero(sticking.reshape(-1)).squeeze(-1)
+    r = tangential.shape[-1]
+    chosen = _bracket_components(
+        Jt.reshape(-1, D, n).index_select(0, slots),
+        tangential.reshape(-1, r).index_select(0, slots),
+        torch.ones_like(slots, dtype=torch.bool),
+    )
+    pt = Jt.new_zeros(sticking.numel(), D).index_put((slots,), chosen)
+    return pt.view(*batch, K, D)
+
+
+def _bracket_components(Jt: Tensor, tangential: Tensor, sticking: Tensor) -> Tensor:
+    """:func:`_bracket_decomposition` of spatial slots (``D >= 4``) on every slot given.
+
+    Args:
+        Jt: ``(*S, D, n)`` friction-direction rows.
+        tangential: ``(*S, 2)`` impulse coordinates along directions 0 and 1.
+        sticking: ``(*S,)`` bool; other slots return zeros.
+
+    Returns:
+        ``(*S, D)`` the components.
+    """
+    D = Jt.shape[-2]
+    zero = torch.zeros((), dtype=Jt.dtype, device=Jt.device)
     coords = _basis_coordinates(Jt, sticking)
     c_this = coords
     c_next = coords.roll(-1, dims=-1)
-    lam = tangential.unsqueeze(-1)  # (*B, K, 2, 1)
+    lam = tangential.unsqueeze(-1)  # (*S, 2, 1)
 
     def cross(a: Tensor, b: Tensor) -> Tensor:
         return a[..., 0, :] * b[..., 1, :] - a[..., 1, :] * b[..., 0, :]

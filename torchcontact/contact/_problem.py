@@ -176,12 +176,52 @@ class ContactProblem:
             cache[name] = compute()
         return cast(_T, cache[name])
 
+    def cached_at(self, name: str, inputs: tuple[Tensor, ...], compute: Callable[[], _T]) -> _T:
+        """``compute()`` of a candidate solution's ``inputs``, kept while the same are passed.
+
+        For quantities at one solution that several checks read (the constraint velocities at
+        ``v⁺``, the problem's scales at ``(v⁺, pn, pt)``): one entry per ``name``, replaced
+        when other inputs come. Inputs are the same when they are views of the same memory
+        with the same layout and version (a detached or reshaped solution is the same); the
+        entry keeps them referenced, so their memory cannot be reused meanwhile. Nothing is
+        kept where :meth:`cached` keeps nothing (inside :func:`torch.compile`'s tracing, the
+        memory of a traced tensor is not known), an input requires grad, or an input has no
+        memory or version of its own (an inference tensor, a tensor inside a
+        :mod:`torch.func` transform).
+
+        Args:
+            name: the quantity's key, one per ``compute``.
+            inputs: the tensors ``compute`` reads besides the problem's fields.
+            compute: computes it.
+        """
+        if (
+            torch.compiler.is_compiling()
+            or any(t.is_inference() for t in inputs)
+            or (torch.is_grad_enabled() and any(t.requires_grad for t in inputs))
+        ):
+            return compute()
+        try:
+            key: tuple[object, ...] = tuple(
+                (t.untyped_storage().data_ptr(), t.storage_offset(), t.stride(), t._version)
+                for t in inputs
+            )
+            key += tuple((t.shape, t.dtype) for t in inputs)
+        except NotImplementedError:  # torch.func's wrapped tensors have no storage
+            return compute()
+        entry: dict[str, Any] = self.cached(f"{name} at", dict)
+        if entry.get("key") != key:
+            entry.update(key=key, inputs=inputs, value=compute())
+        return cast(_T, entry["value"])
+
     def mass_solve(self, rhs: Tensor) -> Tensor:
         """``M⁻¹ rhs`` by Cholesky factorization, differentiable.
 
         A mass matrix shared by the whole batch (a field broadcast from ``(n, n)``, as
         assemblers build it) is factored once and solved with every right-hand side of the
-        batch as one block of columns, instead of once per batch entry.
+        batch as one block of columns, instead of once per batch entry. Where the problem
+        keeps ``M⁻¹`` (:meth:`cached` under ``"mass_inverse"``: an assembler that has it in
+        closed form, as the simulator for rigid bodies, ``diag(1/m, R I⁻¹ Rᵀ)``), it is one
+        product instead.
 
         Args:
             rhs: ``(*B, n, k)`` right-hand sides (``*B`` broadcasts to the problem's).
@@ -189,6 +229,9 @@ class ContactProblem:
         Returns:
             ``(*B, n, k)``.
         """
+        inverse = self.__dict__.get("_cache", {}).get("mass_inverse")
+        if inverse is not None:
+            return cast(Tensor, inverse @ rhs)
         M, batch = self.M, self.batch_shape
         shared = bool(batch) and 0 not in batch and all(s == 0 for s in M.stride()[: len(batch)])
         if not shared:
@@ -265,12 +308,18 @@ class ContactProblem:
         return mapped
 
     def reshape(self, *batch_shape: int) -> ContactProblem:
-        """Return the problem with its batch dimensions reshaped to ``batch_shape``."""
+        """Return the problem with its batch dimensions reshaped to ``batch_shape`` (itself
+        when they have that shape already)."""
+        if batch_shape == tuple(self.batch_shape):
+            return self
         old = len(self.batch_shape)
         return self.map_tensors(lambda t: t.reshape(*batch_shape, *t.shape[old:]))
 
     def flatten(self) -> ContactProblem:
-        """Return the problem with a single batch dimension ``(prod(*B),)``."""
+        """Return the problem with a single batch dimension ``(prod(*B),)`` (itself when it
+        has one: the quantities it keeps, :meth:`cached`, stay with it)."""
+        if len(self.batch_shape) == 1:
+            return self
         return self.reshape(math.prod(self.batch_shape))
 
     def __getitem__(self, index: Any) -> ContactProblem:

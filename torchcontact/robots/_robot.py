@@ -29,6 +29,7 @@ from torchcontact._checks import (
     broadcast_batch,
     check_float,
     check_like,
+    check_tensor,
     check_trailing,
     check_unit_rows,
     read_text_file,
@@ -325,11 +326,14 @@ class Robot:
             jacobians = jacobians @ kin.matrix
         return transforms, jacobians
 
-    def _com_jacobians(self, q: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    def _com_jacobians(
+        self, q: Tensor, links: tuple[Tensor, Tensor] | None = None
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """Masses ``(Li,)``, centre-of-mass Jacobians ``(*B, Li, 3, dof)``, angular Jacobians
         ``(*B, Li, 3, dof)`` and world inertias about the centres of mass ``(*B, Li, 3, 3)`` of
-        the links with an inertial."""
-        transforms, jacobians = self.link_jacobians(q)
+        the links with an inertial (from ``links``, :meth:`link_jacobians` at ``q``, if
+        given)."""
+        transforms, jacobians = self.link_jacobians(q) if links is None else links
         frames = torch.tensor(
             [self.link_names.index(i.link) for i in self.inertials],
             dtype=torch.long,
@@ -350,7 +354,7 @@ class Robot:
         linear = jacobian[..., :3, :] + spin
         return masses, linear, angular, rotation @ inertia @ rotation.transpose(-1, -2)
 
-    def mass_matrix(self, q: Tensor) -> Tensor:
+    def mass_matrix(self, q: Tensor, *, links: tuple[Tensor, Tensor] | None = None) -> Tensor:
         """Joint-space mass matrix ``M(q) = Σ_links m Jcᵀ Jc + Jωᵀ I_w Jω``.
 
         ``Jc`` is the Jacobian of the link's centre of mass and ``Jω`` of its angular velocity
@@ -361,18 +365,35 @@ class Robot:
 
         Args:
             q: Actuated joint coordinates ``(*B, dof)``, float32 or float64.
+            links: :meth:`link_jacobians` at ``q`` where the caller has them already (a
+                simulator step needs them for the contact rows too); computed when ``None``.
 
         Returns:
             ``(*B, dof, dof)`` symmetric positive semi-definite (definite when every coordinate
             moves some mass).
 
         Raises:
-            ValueError: ``q`` is not a finite float tensor of shape ``(*B, dof)``, or the robot
-                has no link inertials.
+            ValueError: ``q`` is not a finite float tensor of shape ``(*B, dof)``, ``links``
+                is not a pair of finite tensors of :meth:`link_jacobians`' shapes at ``q``, or
+                the robot has no link inertials.
         """
         if not self.inertials:
             raise ValueError(f"robot {self.name!r} has no link <inertial> elements")
-        masses, linear, angular, inertia = self._com_jacobians(q)
+        if links is not None:
+            q = self._check_q(q)
+            if not isinstance(links, tuple) or len(links) != 2:
+                raise ValueError("links must be the pair (transforms, jacobians) of link_jacobians")
+            L = len(self.link_names)
+            for name, value, event in (
+                ("links[0]", links[0], (L, 4, 4)),
+                ("links[1]", links[1], (L, 6, self.dof)),
+            ):
+                check_tensor(name, value, event_shape=event, like=q)
+                if value.shape[:-3] != q.shape[:-1]:
+                    raise ValueError(
+                        f"{name} has shape {tuple(value.shape)}; expected {(*q.shape[:-1], *event)}"
+                    )
+        masses, linear, angular, inertia = self._com_jacobians(q, links)
         translational = masses[:, None, None] * (linear.transpose(-1, -2) @ linear)
         rotational = angular.transpose(-1, -2) @ inertia @ angular
         return (translational + rotational).sum(-3)

@@ -552,17 +552,18 @@ def assemble(
     if f is None:
         f = _gravity_force(scene, dtype, device)
     f = f.expand(P, -1, twist) if force is None else f + force
+    M_inverse = None
     if layout.dimension == 2:
         M = layout.mass_matrix
         if M is None:
             M = scene.mass_matrix().to(dtype=dtype, device=device)
     else:
-        M, gyroscopic = _spatial_inertia(scene, layout, slots.poses, v)
+        M, gyroscopic, M_inverse = _spatial_inertia(scene, layout, slots.poses, v)
         f = f + gyroscopic
     v_flat, f_flat = v.flatten(-2), f.flatten(-2)
     if slots.robots is not None and slots.robots.velocity.shape[-1]:
         robots = slots.robots
-        M = _block_diagonal(M.expand(P, -1, -1), robots.mass)
+        M, M_inverse = _block_diagonal(M.expand(P, -1, -1), robots.mass), None
         v_flat = torch.cat([v_flat, robots.velocity], dim=-1)
         f_flat = torch.cat([f_flat, robots.force], dim=-1)
     if friction is not None:
@@ -575,7 +576,7 @@ def assemble(
     assert scene.recovery_speed is not None
     if math.isfinite(scene.recovery_speed):
         phi = phi.clamp(min=-scene.h * scene.recovery_speed)
-    return ContactProblem.unchecked(
+    problem = ContactProblem.unchecked(
         M=M,
         v=v_flat,
         f=f_flat,
@@ -588,6 +589,10 @@ def assemble(
         bn=known[..., 0],
         bt=torch.cat([known[..., 1:], -known[..., 1:]], dim=-1),
     )
+    if M_inverse is not None:
+        # Kept for the problem's mass solves (where it keeps anything: no field requires grad).
+        problem.cached("mass_inverse", lambda: M_inverse)
+    return problem
 
 
 def _block_diagonal(top: Tensor, bottom: Tensor) -> Tensor:
@@ -604,9 +609,11 @@ def _block_diagonal(top: Tensor, bottom: Tensor) -> Tensor:
 
 def _spatial_inertia(
     scene: Scene, layout: SceneLayout, poses: Tensor, v: Tensor
-) -> tuple[Tensor, Tensor]:
-    """The mass matrix ``(P, 6 Nd, 6 Nd)`` of a spatial batch at its poses and the gyroscopic
-    torques ``(P, Nd, 6)`` ``(0, I_w (ω_free − ω) / h)`` of the implicit free step."""
+) -> tuple[Tensor, Tensor, Tensor | None]:
+    """The mass matrix ``(P, 6 Nd, 6 Nd)`` of a spatial batch at its poses, the gyroscopic
+    torques ``(P, Nd, 6)`` ``(0, I_w (ω_free − ω) / h)`` of the implicit free step, and the
+    inverse mass matrix ``diag(1/m, R I⁻¹ Rᵀ)`` (``(R I Rᵀ)⁻¹ = R I⁻¹ Rᵀ``), or ``None``
+    where a mass or an inertia requires grad."""
     masses, inertias = layout.masses, layout.inertias
     if masses is None or inertias is None:
         masses = scene.masses().to(dtype=v.dtype, device=v.device)
@@ -619,7 +626,12 @@ def _spatial_inertia(
     # meet only the zeros).
     change = torch.cat([torch.zeros_like(omega), omega_free - omega], dim=-1).flatten(-2)
     wrench = (M @ change.unsqueeze(-1)).squeeze(-1) / scene.h
-    return M, wrench.unflatten(-1, (layout.num_dynamic, 6))
+    inverse = None
+    if layout.masses is not None and layout.inertias is not None:
+        inverse = spatial_mass_matrix(
+            layout.masses.reciprocal(), torch.linalg.inv(layout.inertias), quaternion
+        )
+    return M, wrench.unflatten(-1, (layout.num_dynamic, 6)), inverse
 
 
 def robot_inputs(

@@ -270,7 +270,8 @@ def robot_step(
         q, qd = q_robot[:, span], v_robot[:, span]
         base = robot_base[:, r]
         rotation = quat_to_matrix(base[:, 3:])  # (P, 3, 3)
-        transforms, jacobian = robot.link_jacobians(q)  # (P, L, 4, 4), (P, L, 6, dof)
+        links = robot.link_jacobians(q)
+        transforms, jacobian = links  # (P, L, 4, 4), (P, L, 6, dof)
         turn = rotation.unsqueeze(1)
         origin = (turn @ transforms[..., :3, 3:]).squeeze(-1) + base[:, None, :3]
         link_rotation = turn @ transforms[..., :3, :3]
@@ -303,7 +304,8 @@ def robot_step(
             added, torque = servo_terms(member, q, qd, target, h)
             if not member.gravity_compensation:
                 torque = torque + robot.gravity_force(q, g @ rotation)  # gravity Rᵀ g, base frame
-            mass = robot.mass_matrix(q).index_select(-1, servo).index_select(-2, servo)
+            mass = robot.mass_matrix(q, links=links)
+            mass = mass.index_select(-1, servo).index_select(-2, servo)
             masses.append(mass + torch.diag_embed(added.index_select(-1, servo)))
             forces.append(torque.index_select(-1, servo))
             velocities.append(qd.index_select(-1, servo))
