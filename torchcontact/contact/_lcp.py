@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import torch
 from torch import Tensor
 
@@ -236,31 +238,19 @@ def _scales(
     the scales of the last solution checked (:meth:`ContactProblem.cached_at`: the
     simulator's consistency check and its canonical modes read the same solution).
     """
+    scales = functools.partial(
+        _scales_from, problem, v_next=v_next, pn=pn, pt=pt, gap_rate=gap_rate, slip=slip
+    )
     if v_free is None:
         return problem.cached_at(
             "scales",
             (v_next, pn, pt),
-            lambda: _scales_from(
-                problem,
-                v_next=v_next,
-                pn=pn,
-                pt=pt,
-                gap_rate=gap_rate,
-                slip=slip,
+            lambda: scales(
                 v_free=problem.v_free(),
                 free=problem.cached("free_terms", lambda: _free_terms(problem, problem.v_free())),
             ),
         )
-    return _scales_from(
-        problem,
-        v_next=v_next,
-        pn=pn,
-        pt=pt,
-        gap_rate=gap_rate,
-        slip=slip,
-        v_free=v_free,
-        free=_free_terms(problem, v_free),
-    )
+    return scales(v_free=v_free, free=_free_terms(problem, v_free))
 
 
 def _scales_from(
