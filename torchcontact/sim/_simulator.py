@@ -159,15 +159,19 @@ class Simulator:
             an accepted, unconverged retry.
         compiled: first try each step of a planar scene without robots as one
             :func:`torch.compile` kernel (see ``torchcontact._compiled``; the first step
-            compiles, tens of seconds, and a second number of active slots once more, with
-            dynamic sizes): the slot geometry and the problem on all ``K`` slots, the mode
-            solve at the previous step's modes on the slots they activate (plus one separated
-            slot: systems no larger than the eager step's), the consistency check and the
-            canonical modes, with no host synchronisation; then one synchronisation: the
-            entries that are consistent (``solver == 0``) are done, the others take steps 1–5
-            as a batch of their own. The mode solve's systems of up to 16 rows are solved by
-            Gaussian elimination with partial pivoting written out in the kernel, so that the
-            step runs as fused loops without LAPACK calls. The results equal those of
+            compiles, tens of seconds, and each new number of active slots once more): the
+            slot geometry and the problem on all ``K`` slots, the mode solve at the previous
+            step's modes on the slots they activate (plus at least one separated slot:
+            systems no larger than the eager step's), the consistency check, the canonical
+            modes and the active set's next modes (:func:`~torchcontact.contact.update_mode`),
+            with no host synchronisation; then one synchronisation: the entries that are
+            consistent (``solver == 0``) are done, the others are corrected as the eager
+            step's active set does (``active_set_iterations`` times at most), each correction
+            one call of the kernel on those entries alone (compiled once with dynamic sizes);
+            the entries still inconsistent take steps 1–5 as a batch of their own, from their
+            previous modes. The mode solve's systems and the mass matrix (up to 16 rows) are
+            solved by Gaussian elimination with partial pivoting written out in the kernel, so
+            that the step runs as fused loops without LAPACK calls. The results equal those of
             ``compiled=False`` to rounding. Spatial scenes, scenes with robots and steps that
             record gradients (an input, or a scene mass, inertia or friction, that requires
             grad) run eagerly.
