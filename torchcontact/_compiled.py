@@ -22,8 +22,7 @@ the backward of their LU solves runs as triangular solves on full systems, slowe
 
 The simulator's kernel (:class:`~torchcontact.sim.Simulator` with ``compiled=True``) is a
 planar step at given modes: some 600 small operations eagerly, one call compiled (and one
-more on the entries whose modes the active set corrects, through a second compiled form with
-dynamic sizes).
+more on the entries whose modes the active set corrects).
 
 What it costs:
 

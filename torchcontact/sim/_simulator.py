@@ -167,9 +167,9 @@ class Simulator:
             with no host synchronisation; then one synchronisation: the entries that are
             consistent (``solver == 0``) are done, the others are corrected as the eager
             step's active set does (``active_set_iterations`` times at most), each correction
-            one call of the kernel on those entries alone (compiled once with dynamic sizes);
-            the entries still inconsistent take steps 1–5 as a batch of their own, from their
-            previous modes. The mode solve's systems and the mass matrix (up to 16 rows) are
+            one call of the kernel on those entries alone (a second batch size compiles once
+            more, with dynamic sizes); the entries still inconsistent take steps 1–5 as a
+            batch of their own, from their previous modes. The mode solve's systems and the mass matrix (up to 16 rows) are
             solved by Gaussian elimination with partial pivoting written out in the kernel, so
             that the step runs as fused loops without LAPACK calls. The results equal those of
             ``compiled=False`` to rounding. Spatial scenes, scenes with robots and steps that
@@ -572,11 +572,7 @@ class Simulator:
         control, force, friction = (
             None if t is None else flat(t) for t in (control, force, friction)
         )
-        # The whole batch's step compiles for its shapes (a second batch size once more, with
-        # dynamic sizes); the corrections' batches, of any size, with dynamic sizes at once:
-        # one graph for all of them, and the whole batch's static graph stays (about 10 %
-        # faster at 1,024 boxes than the dynamic one).
-        whole, part = (kernel(_step_at_modes, compiled=True, dynamic=d) for d in (None, True))
+        step = kernel(_step_at_modes, compiled=True)
 
         def run(index: Tensor | None, guess: Tensor) -> _KernelStep:
             # The mode solve's slots: as many as the most non-separated slots of an entry plus
@@ -591,7 +587,6 @@ class Simulator:
                 return None if t is None else pick(t)
 
             optional = map(pick_optional, (control, force, friction))
-            step = whole if index is None else part
             return _KernelStep(
                 *step(self.scene, pick(q), pick(v), pick(q_kinematic), guess, width, *optional)
             )
