@@ -169,9 +169,10 @@ class Simulator:
             step's active set does (``active_set_iterations`` times at most), each correction
             one call of the kernel on those entries alone (a second batch size compiles once
             more, with dynamic sizes); the entries still inconsistent take steps 1–5 as a
-            batch of their own, from their previous modes. The mode solve's systems and the mass matrix (up to 16 rows) are
-            solved by Gaussian elimination with partial pivoting written out in the kernel, so
-            that the step runs as fused loops without LAPACK calls. The results equal those of
+            batch of their own, from their previous modes. The mode solve's systems and the
+            mass matrix (up to 16 rows) are solved by Gaussian elimination with partial
+            pivoting written out in the kernel, so that the step runs as fused loops without
+            LAPACK calls. The results equal those of
             ``compiled=False`` to rounding. Spatial scenes, scenes with robots and steps that
             record gradients (an input, or a scene mass, inertia or friction, that requires
             grad) run eagerly.
