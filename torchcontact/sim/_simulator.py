@@ -172,10 +172,9 @@ class Simulator:
             batch of their own, from their previous modes. The mode solve's systems and the
             mass matrix (up to 16 rows) are solved by Gaussian elimination with partial
             pivoting written out in the kernel, so that the step runs as fused loops without
-            LAPACK calls. The results equal those of
-            ``compiled=False`` to rounding. Spatial scenes, scenes with robots and steps that
-            record gradients (an input, or a scene mass, inertia or friction, that requires
-            grad) run eagerly.
+            LAPACK calls. The results equal those of ``compiled=False`` to rounding. Spatial
+            scenes, scenes with robots and steps that record gradients (an input, or a scene
+            mass, inertia or friction, that requires grad) run eagerly.
     """
 
     scene: Scene
