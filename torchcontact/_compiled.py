@@ -21,7 +21,8 @@ compiles this large graph faster. The mode solves stay eager: compiled,
 the backward of their LU solves runs as triangular solves on full systems, slower than eager.
 
 The simulator's kernel (:class:`~torchcontact.sim.Simulator` with ``compiled=True``) is a
-planar step at the previous modes: some 600 small operations eagerly, one call compiled.
+planar step at given modes: some 600 small operations eagerly, one call compiled (and one
+more on the entries whose modes the active set corrects).
 
 What it costs:
 

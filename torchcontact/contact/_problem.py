@@ -17,6 +17,7 @@ from torchcontact._checks import (
     check_positive,
     describe,
 )
+from torchcontact.contact._tikhonov import ELIMINATION_MAX_ORDER, solve_by_elimination
 
 _T = TypeVar("_T")
 
@@ -214,7 +215,9 @@ class ContactProblem:
         return cast(_T, entry["value"])
 
     def mass_solve(self, rhs: Tensor) -> Tensor:
-        """``M⁻¹ rhs`` by Cholesky factorization, differentiable.
+        """``M⁻¹ rhs`` by Cholesky factorization, differentiable (traced by
+        :func:`torch.compile` without gradients, up to ``n = 16``: by Gaussian elimination
+        written out).
 
         A mass matrix shared by the whole batch (a field broadcast from ``(n, n)``, as
         assemblers build it) is factored once and solved with every right-hand side of the
@@ -234,14 +237,28 @@ class ContactProblem:
             return cast(Tensor, inverse @ rhs)
         M, batch = self.M, self.batch_shape
         shared = bool(batch) and 0 not in batch and all(s == 0 for s in M.stride()[: len(batch)])
+        # Under torch.compile without gradients a small system is solved by elimination
+        # written out, which fuses into the compiled loops (the Cholesky factorization and
+        # solve are library calls; with gradients they keep their one-formula backward).
+        written_out = (
+            torch.compiler.is_compiling()
+            and not torch.is_grad_enabled()
+            and M.shape[-1] <= ELIMINATION_MAX_ORDER
+        )
         if not shared:
+            if written_out:
+                return solve_by_elimination(M, rhs)
             return torch.cholesky_solve(
                 rhs, self.cached("mass_factor", lambda: torch.linalg.cholesky(M))
             )
-        L = self.cached("mass_factor", lambda: torch.linalg.cholesky(M[(0,) * len(batch)]))
         rhs = rhs.expand(*batch, *rhs.shape[-2:])
         n, k = rhs.shape[-2:]
-        solved = torch.cholesky_solve(rhs.movedim(-2, 0).reshape(n, -1), L)
+        columns = rhs.movedim(-2, 0).reshape(n, -1)
+        if written_out:
+            solved = solve_by_elimination(M[(0,) * len(batch)], columns)
+        else:
+            L = self.cached("mass_factor", lambda: torch.linalg.cholesky(M[(0,) * len(batch)]))
+            solved = torch.cholesky_solve(columns, L)
         return solved.reshape(n, *batch, k).movedim(0, -2)
 
     @classmethod

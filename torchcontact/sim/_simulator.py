@@ -33,6 +33,7 @@ from torchcontact.contact import (
     solve_active_set,
     solve_mode,
     solve_mode_unchecked,
+    update_mode,
 )
 from torchcontact.geometry import SlotGeometry
 from torchcontact.sim._assemble import assemble, robot_inputs, scene_layout, slot_state
@@ -158,18 +159,22 @@ class Simulator:
             an accepted, unconverged retry.
         compiled: first try each step of a planar scene without robots as one
             :func:`torch.compile` kernel (see ``torchcontact._compiled``; the first step
-            compiles, tens of seconds, and a second number of active slots once more, with
-            dynamic sizes): the slot geometry and the problem on all ``K`` slots, the mode
-            solve at the previous step's modes on the slots they activate (plus one separated
-            slot: systems no larger than the eager step's), the consistency check and the
-            canonical modes, with no host synchronisation; then one synchronisation: the
-            entries that are consistent (``solver == 0``) are done, the others take steps 1–5
-            as a batch of their own. The mode solve's systems of up to 16 rows are solved by
-            Gaussian elimination with partial pivoting written out in the kernel, so that the
-            step runs as fused loops without LAPACK calls. The results equal those of
-            ``compiled=False`` to rounding. Spatial scenes, scenes with robots and steps that
-            record gradients (an input, or a scene mass, inertia or friction, that requires
-            grad) run eagerly.
+            compiles, tens of seconds, and each new number of active slots once more): the
+            slot geometry and the problem on all ``K`` slots, the mode solve at the previous
+            step's modes on the slots they activate (plus at least one separated slot:
+            systems no larger than the eager step's), the consistency check, the canonical
+            modes and the active set's next modes (:func:`~torchcontact.contact.update_mode`),
+            with no host synchronisation; then one synchronisation: the entries that are
+            consistent (``solver == 0``) are done, the others are corrected as the eager
+            step's active set does (``active_set_iterations`` times at most), each correction
+            one call of the kernel on those entries alone (a second batch size compiles once
+            more, with dynamic sizes); the entries still inconsistent take steps 1–5 as a
+            batch of their own, from their previous modes. The mode solve's systems and the
+            mass matrix (up to 16 rows) are solved by Gaussian elimination with partial
+            pivoting written out in the kernel, so that the step runs as fused loops without
+            LAPACK calls. The results equal those of ``compiled=False`` to rounding. Spatial
+            scenes, scenes with robots and steps that record gradients (an input, or a scene
+            mass, inertia or friction, that requires grad) run eagerly.
     """
 
     scene: Scene
@@ -553,37 +558,61 @@ class Simulator:
         force: Tensor | None,
         friction: Tensor | None,
     ) -> tuple[Solution, Tensor, SlotGeometry]:
-        """The compiled step at the previous modes, then :meth:`_step_compacted` for the
-        entries where it is not consistent; the returns of :meth:`_step_compacted`."""
+        """The compiled step at the previous modes, corrected by the active-set iteration's
+        kernel calls on the inconsistent entries, then :meth:`_step_compacted` for the entries
+        still inconsistent; the returns of :meth:`_step_compacted`."""
         batch, K = state.batch_shape, self.scene.num_slots
         P = math.prod(batch)
+        unflattened = len(batch) != 1
 
         def flat(t: Tensor) -> Tensor:
-            return t.reshape(P, *t.shape[len(batch) :])
+            return t.reshape(P, *t.shape[len(batch) :]) if unflattened else t
 
         q, v, q_kinematic, mode = map(flat, (state.q, state.v, state.q_kinematic, state.mode))
         control, force, friction = (
             None if t is None else flat(t) for t in (control, force, friction)
         )
-        # The mode solve's slots: each entry's non-separated ones first, then separated ones,
-        # as many as the most non-separated slots of an entry plus one (a read of the modes,
-        # which are on the host before the step).
-        separated = mode == SEPARATED
-        width = min(K, int((~separated).sum(-1).max()) + 1)
-        solved = torch.argsort(separated.to(torch.uint8), dim=-1, stable=True)[:, :width]
+        step = kernel(_step_at_modes, compiled=True)
+
+        def run(index: Tensor | None, guess: Tensor) -> _KernelStep:
+            # The mode solve's slots: as many as the most non-separated slots of an entry plus
+            # one, at least two (so that the first step, from separated modes, shares the
+            # later steps' graph): a read of the modes (SEPARATED is 0), which are on the host.
+            width = min(K, max(2, int(torch.count_nonzero(guess, dim=-1).max()) + 1))
+
+            def pick(t: Tensor) -> Tensor:
+                return t if index is None else t[index]
+
+            def pick_optional(t: Tensor | None) -> Tensor | None:
+                return None if t is None else pick(t)
+
+            optional = map(pick_optional, (control, force, friction))
+            return _KernelStep(
+                *step(self.scene, pick(q), pick(v), pick(q_kinematic), guess, width, *optional)
+            )
+
         # Nothing requires grad here: one compiled variant whatever the grad mode.
         with torch.no_grad():
-            v_next, pn, pt, canonical, residual, good, geometry = kernel(
-                _step_at_modes, compiled=True
-            )(self.scene, q, v, q_kinematic, mode, solved, control, force, friction)
+            out = run(None, mode)
+            redo = torch.nonzero(~out.good).squeeze(-1)  # a host synchronisation
+            # The active-set iteration of the eager step (``solve_active_set``), each
+            # correction of the inconsistent entries' modes one more kernel call on them.
+            for _ in range(self.active_set_iterations):
+                if redo.numel() == 0:
+                    break
+                out.scatter(redo, run(redo, out.proposal[redo]))
+                redo = torch.nonzero(~out.good).squeeze(-1)
         status = SolveStatus(
-            converged=good, residual=residual, iterations=torch.ones_like(mode[:, 0])
+            converged=out.good, residual=out.residual, iterations=torch.ones_like(mode[:, 0])
         )
-        solution = Solution(v_next=v_next, pn=pn, pt=pt, mode=canonical, status=status)
-        solver = torch.full_like(mode[:, 0], SOLVED_BY_GUESS)
-        redo = torch.nonzero(~good).squeeze(-1)  # the one host synchronisation
+        solution = Solution(
+            v_next=out.v_next, pn=out.pn, pt=out.pt, mode=out.canonical, status=status
+        )
+        solver = torch.zeros_like(mode[:, 0])  # SOLVED_BY_GUESS
         if redo.numel():
-            # The entries whose previous modes fail take the eager step, as a batch of their own.
+            # Entries the corrections leave inconsistent take the eager step, as a batch of
+            # their own, from their previous modes (so the same iterations, then the exact
+            # solvers).
             def pick(t: Tensor | None) -> Tensor | None:
                 return None if t is None else t[redo]
 
@@ -595,14 +624,17 @@ class Simulator:
             )
             solution = solution.scatter(redo, eager)
             solver = solver.index_put((redo,), codes)
-        geometry = SlotGeometry(
-            points=geometry.points.reshape(*batch, K, 2),
-            normals=geometry.normals.reshape(*batch, K, 2),
-            phi=geometry.phi.reshape(*batch, K),
-            active=geometry.active.reshape(*batch, K),
-        )
-        solution = solution.map_tensors(lambda t: t.reshape((*batch, *t.shape[1:])))
-        return solution, solver.reshape(batch), geometry
+        geometry = out.geometry
+        if unflattened:
+            geometry = SlotGeometry(
+                points=geometry.points.reshape(*batch, K, 2),
+                normals=geometry.normals.reshape(*batch, K, 2),
+                phi=geometry.phi.reshape(*batch, K),
+                active=geometry.active.reshape(*batch, K),
+            )
+            solution = solution.map_tensors(lambda t: t.reshape((*batch, *t.shape[1:])))
+            solver = solver.reshape(batch)
+        return solution, solver, geometry
 
     def _step_compacted(
         self,
@@ -734,18 +766,18 @@ def _step_at_modes(
     v: Tensor,
     q_kinematic: Tensor,
     mode: Tensor,
-    solved: Tensor,
+    width: int,
     control: Tensor | None,
     force: Tensor | None,
     friction: Tensor | None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, SlotGeometry]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, SlotGeometry]:
     """A step of a flat batch of a planar scene at given modes, with no host synchronisation
     (the kernel of ``Simulator(compiled=True)``).
 
     The problem is assembled on all ``K`` slots, where the solution is checked; the mode solve
-    runs on the slots ``solved`` alone (those that the modes make active, and at least one
-    separated slot): a separated slot carries no impulse and adds only an identity row to the
-    Schur system, so the solve is the same, on the systems the eager step factors.
+    runs on ``width`` slots alone: each entry's non-separated slots first, then separated ones
+    (a separated slot carries no impulse and adds only an identity row to the Schur system, so
+    the solve is the same, on the systems the eager step factors).
 
     Args:
         scene: the scene (planar, without robots).
@@ -753,8 +785,8 @@ def _step_at_modes(
         v: ``(P, Nd, 3)`` their twists.
         q_kinematic: ``(P, Nk, 3)`` kinematic-body poses.
         mode: ``(P, K)`` long modes to solve at.
-        solved: ``(P, W)`` long: the slots of the mode solve, every slot whose ``mode`` is not
-            separated among them.
+        width: the number of slots of the mode solve, more than the most non-separated
+            slots of an entry.
         control: ``(P, Nk, 3)`` kinematic-body twists, or ``None``.
         force: ``(P, Nd, 3)`` applied forces, or ``None``.
         friction: ``(P, K)`` per-slot friction, or ``None``.
@@ -762,10 +794,13 @@ def _step_at_modes(
     Returns:
         ``v_next (P, 3 Nd)``, ``pn (P, K)``, ``pt (P, K, 2)``, the canonical modes ``(P, K)``,
         the LCP residual ``(P,)``, ``(P,)`` bool: the solution is consistent with ``mode`` and
-        converged, and the slot geometry (batch ``(P,)``).
+        converged, the ``(P, K)`` modes of the next active-set iteration
+        (:func:`~torchcontact.contact.update_mode`), and the slot geometry (batch ``(P,)``).
     """
     slots = slot_state(scene, q, q_kinematic, control)
     P, K = mode.shape
+    separated = (mode == SEPARATED).to(torch.uint8)
+    solved = torch.argsort(separated, dim=-1, stable=True)[:, :width]
     every = torch.arange(K, device=q.device).expand(P, K)
     problem = assemble(scene, slots, v, every, force=force, friction=friction)
     mode = torch.where(problem.slot_mask, mode, 0)
@@ -781,4 +816,33 @@ def _step_at_modes(
     canonical = contact_mode(problem, v_next=v_next, pn=pn, pt=pt)
     residual = lcp_residual(problem, v_next=v_next, pn=pn, pt=pt)
     good = consistent & solution.status.converged
-    return v_next, pn, pt, canonical, residual, good, slots.geometry
+    at_mode = Solution(
+        v_next=v_next,
+        pn=pn,
+        pt=pt,
+        mode=mode,
+        status=replace(solution.status, residual=residual),
+    )
+    proposal = update_mode(problem, at_mode)
+    return v_next, pn, pt, canonical, residual, good, proposal, slots.geometry
+
+
+@dataclass(eq=False)
+class _KernelStep:
+    """The outputs of :func:`_step_at_modes` (flat batch ``(P,)``), updated in place where
+    the active-set iteration re-runs it on some entries."""
+
+    v_next: Tensor
+    pn: Tensor
+    pt: Tensor
+    canonical: Tensor
+    residual: Tensor
+    good: Tensor
+    proposal: Tensor
+    geometry: SlotGeometry
+
+    def scatter(self, index: Tensor, other: _KernelStep) -> None:
+        """Write ``other``'s entries (its slot geometry excepted: the poses are the same) at
+        ``index``."""
+        for name in ("v_next", "pn", "pt", "canonical", "residual", "good", "proposal"):
+            getattr(self, name).index_copy_(0, index, getattr(other, name))
