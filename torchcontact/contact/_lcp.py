@@ -241,16 +241,17 @@ def _scales(
     scales = functools.partial(
         _scales_from, problem, v_next=v_next, pn=pn, pt=pt, gap_rate=gap_rate, slip=slip
     )
-    if v_free is None:
-        return problem.cached_at(
-            "scales",
-            (v_next, pn, pt),
-            lambda: scales(
-                v_free=problem.v_free(),
-                free=problem.cached("free_terms", lambda: _free_terms(problem, problem.v_free())),
-            ),
-        )
-    return scales(v_free=v_free, free=_free_terms(problem, v_free))
+    if v_free is not None:
+        return scales(v_free=v_free, free=_free_terms(problem, v_free))
+
+    def from_problem() -> tuple[Tensor, Tensor]:
+        # One contact-free velocity: where the problem keeps nothing (a field requires grad,
+        # under tracing) each call of v_free() would solve with M again.
+        free_velocity = problem.v_free()
+        free = problem.cached("free_terms", lambda: _free_terms(problem, free_velocity))
+        return scales(v_free=free_velocity, free=free)
+
+    return problem.cached_at("scales", (v_next, pn, pt), from_problem)
 
 
 def _scales_from(
