@@ -7,9 +7,9 @@ import math
 import pytest
 import torch
 
-from torchcontact.contact import SEPARATED, STICKING
+from torchcontact.contact import SEPARATED, STICKING, solve
 from torchcontact.geometry import HalfPlane, Polygon
-from torchcontact.sim import SOLVED_BY_GUESS, Body, Scene, Simulator
+from torchcontact.sim import SOLVED_BY_GUESS, Body, Scene, SceneState, Simulator, contact_problem
 
 G, H = 9.81, 0.01
 WIDTH, HEIGHT, MASS = 1.0, 0.5, 2.0
@@ -287,4 +287,52 @@ def test_box_sliding_onto_a_box_decelerates_both_by_momentum_exchange() -> None:
     momentum = run.v[:, 0, 0] * MASS + run.v[:, 1, 0] * 1.0
     torch.testing.assert_close(
         momentum, torch.full((11,), 1.5, dtype=torch.float64), atol=1e-12, rtol=0
+    )
+
+
+def test_box_starting_to_slide_or_landing_on_a_corner_stays_on_the_fast_path_at_lemke() -> None:
+    """A box launched at 1 m/s on its two bottom corners, and a box tipping over a corner until
+    its second corner lands (μ = 0.5): every step is solved from the previous modes by the
+    active set (no exact solver), its velocities equal Lemke's on the same contact problem,
+    and the first sliding step is the closed form ``v = 1 − μ g h`` with the weight carried.
+
+    From separated modes, corners that close while slipping start sliding against their
+    slip: started sticking instead, the launched box's active set cycled between a corner
+    pulling and the corners sticking, and the landing corner's stuck rows contradicted the
+    pivot's, so Lemke solved both steps. The velocities of the Stewart–Trinkle LCP are
+    unique here; both solutions are exact to rounding (condition numbers ~10), so 1e-9 m/s.
+    """
+    sim = box_on_ground(mu=0.5)
+    theta = 1.2  # past the balance angle atan(W / H) ≈ 1.107 rad: it tips onto its side
+    corner = torch.tensor([-WIDTH / 2, -HEIGHT / 2], dtype=torch.float64)
+    rotation = torch.tensor(
+        [[math.cos(theta), -math.sin(theta)], [math.sin(theta), math.cos(theta)]],
+        dtype=torch.float64,
+    )
+    tipping = -(rotation @ corner)
+    q = torch.cat([pose(0, HEIGHT / 2, 0), pose(float(tipping[0]), float(tipping[1]), theta)])
+    v = torch.cat([pose(1.0, 0, 0), pose(0, 0, 0)])
+    state = sim.initial_state(q=q.unsqueeze(1), v=v.unsqueeze(1))
+    run = sim.rollout(state, steps=160)
+    assert bool((run.solver == SOLVED_BY_GUESS).all())
+    expected = torch.tensor([1.0 - 0.5 * G * H, 0.0, 0.0], dtype=torch.float64)
+    torch.testing.assert_close(run.v[1, 0, 0], expected, atol=1e-12, rtol=0)
+    assert run.pn[0, 0].sum().item() == pytest.approx(MASS * G * H, rel=1e-12)
+    # The tipping box lands: two corners carry it at the end, one before.
+    landed = (run.mode[:, 1] != SEPARATED).sum(-1)
+    assert landed[0] == 1
+    assert landed[-1] == 2
+    problem, _ = contact_problem(
+        sim.scene,
+        SceneState(
+            q=run.q[:-1].flatten(0, 1),
+            v=run.v[:-1].flatten(0, 1),
+            q_kinematic=run.q_kinematic[:-1].flatten(0, 1),
+            mode=run.mode.flatten(0, 1),
+        ),
+    )
+    oracle = solve(problem, "lemke")
+    assert bool(oracle.status.converged.all())
+    torch.testing.assert_close(
+        run.v[1:].flatten(0, 1), oracle.v_next.unflatten(-1, (1, 3)), atol=1e-9, rtol=0
     )

@@ -28,7 +28,8 @@ def update_mode(problem: ContactProblem, solution: Solution) -> Tensor:
     """One active-set correction of the modes of a mode-decoupled solution.
 
     Each slot whose solution violates its own mode switches to the mode that removes the
-    violation: a separated slot that penetrates (gap rate < 0) starts sticking; an active slot
+    violation: a separated slot that penetrates (gap rate < 0) starts sticking (a planar one
+    that slips there: sliding against its slip); an active slot
     that pulls (``pn < 0``) separates; a sticking slot whose friction leaves the cone slides
     with its friction where it was (on the face of the two directions that carried it, or
     along the one direction); a sliding slot whose slip turned along its friction starts
@@ -61,7 +62,15 @@ def update_mode(problem: ContactProblem, solution: Solution) -> Tensor:
     outside_cone = (mode == STICKING) & (pt.sum(-1) > problem.mu * pn + tol * scale_p)
     reverses = is_sliding(mode) & (slip_first > tol * scale_v)
     leaving = SLIDING + largest
-    updated = torch.where(penetrates, STICKING, mode)
+    closing = torch.full_like(mode, STICKING)
+    if D == 2:
+        # A planar slot that closes while it slips starts sliding against its slip (a box
+        # landing or starting to slide on two corners; from sticking its active set cycled).
+        # Spatial slots keep sticking: four coplanar corners sliding make the mode solve's
+        # system singular, where its split's derivative is not yet the limit's (issue 22).
+        slips = slip.abs().amax(dim=-1) > tol * scale_v
+        closing = torch.where(slips, SLIDING + slip.argmin(dim=-1), closing)
+    updated = torch.where(penetrates, closing, mode)
     if D > 2:
         # Sticking friction is written on two adjacent directions: keep it on their face.
         beside = torch.stack([(largest - 1) % D, (largest + 1) % D], dim=-1)

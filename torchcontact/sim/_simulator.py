@@ -161,14 +161,14 @@ class Simulator:
             :func:`torch.compile` kernel (see ``torchcontact._compiled``; the first step
             compiles, tens of seconds, and each new number of active slots once more): the
             slot geometry and the problem on all ``K`` slots, the mode solve at the previous
-            step's modes on the slots they activate (plus at least one separated slot:
-            systems no larger than the eager step's), the consistency check, the canonical
-            modes and the active set's next modes (:func:`~torchcontact.contact.update_mode`),
-            with no host synchronisation; then one synchronisation: the entries that are
-            consistent (``solver == 0``) are done, the others are corrected as the eager
-            step's active set does (``active_set_iterations`` times at most), each correction
-            one call of the kernel on those entries alone (a second batch size compiles once
-            more, with dynamic sizes); the entries still inconsistent take steps 1–5 as a
+            step's modes on the slots they activate (at least two), the consistency check, the
+            canonical modes and the active set's next modes
+            (:func:`~torchcontact.contact.update_mode`), with no host synchronisation; then
+            one synchronisation: the entries that are consistent (``solver == 0``) are done,
+            the others are corrected as the eager step's active set does
+            (``active_set_iterations`` times at most), each correction one call of the kernel
+            on those entries alone (a second batch size compiles once more, with dynamic
+            sizes); the entries still inconsistent take steps 1–5 as a
             batch of their own, from their previous modes. The mode solve's systems and the
             mass matrix (up to 16 rows) are solved by Gaussian elimination with partial
             pivoting written out in the kernel, so that the step runs as fused loops without
@@ -575,10 +575,12 @@ class Simulator:
         step = kernel(_step_at_modes, compiled=True)
 
         def run(index: Tensor | None, guess: Tensor) -> _KernelStep:
-            # The mode solve's slots: as many as the most non-separated slots of an entry plus
-            # one, at least two (so that the first step, from separated modes, shares the
-            # later steps' graph): a read of the modes (SEPARATED is 0), which are on the host.
-            width = min(K, max(2, int(torch.count_nonzero(guess, dim=-1).max()) + 1))
+            # The mode solve's slots: as many as the most non-separated slots of an entry, at
+            # least two (so that the first step, from separated modes, shares the later steps'
+            # graph): a read of the modes (SEPARATED is 0), which are on the host. A separated
+            # slot more would only add identity rows to the systems (a third more rows for
+            # boxes on the ground, and 1.5 times the kernel's time at B = 1,024).
+            width = min(K, max(2, int(torch.count_nonzero(guess, dim=-1).max())))
 
             def pick(t: Tensor) -> Tensor:
                 return t if index is None else t[index]
@@ -777,7 +779,7 @@ def _step_at_modes(
     The problem is assembled on all ``K`` slots, where the solution is checked; the mode solve
     runs on ``width`` slots alone: each entry's non-separated slots first, then separated ones
     (a separated slot carries no impulse and adds only an identity row to the Schur system, so
-    the solve is the same, on the systems the eager step factors).
+    the solve is the same as on all ``K`` slots).
 
     Args:
         scene: the scene (planar, without robots).
@@ -785,8 +787,8 @@ def _step_at_modes(
         v: ``(P, Nd, 3)`` their twists.
         q_kinematic: ``(P, Nk, 3)`` kinematic-body poses.
         mode: ``(P, K)`` long modes to solve at.
-        width: the number of slots of the mode solve, more than the most non-separated
-            slots of an entry.
+        width: the number of slots of the mode solve, at least the most non-separated slots
+            of an entry.
         control: ``(P, Nk, 3)`` kinematic-body twists, or ``None``.
         force: ``(P, Nd, 3)`` applied forces, or ``None``.
         friction: ``(P, K)`` per-slot friction, or ``None``.
