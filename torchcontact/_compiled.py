@@ -22,7 +22,10 @@ the backward of their LU solves runs as triangular solves on full systems, slowe
 
 The simulator's kernel (:class:`~torchcontact.sim.Simulator` with ``compiled=True``) is a
 planar step at given modes: some 600 small operations eagerly, one call compiled (and one
-more on the entries whose modes the active set corrects).
+more on the entries whose modes the active set corrects). Its loops are compiled scalar
+(``vectorize=False``): their innermost dimensions are a scene's slots and rows, and
+Inductor's vectors along them, masked loads and stores of a few doubles through temporary
+arrays, made the kernel 1.6 times slower at 1,024 scenes (the same results).
 
 What it costs:
 
@@ -58,13 +61,21 @@ RECOMPILE_LIMIT = 64
 
 
 @functools.cache
-def _compile(fn: Callable[..., Any], cpp_wrapper: bool, dynamic: bool | None) -> Callable[..., Any]:
+def _compile(
+    fn: Callable[..., Any], cpp_wrapper: bool, dynamic: bool | None, vectorize: bool
+) -> Callable[..., Any]:
     config = torch._dynamo.config
     config.recompile_limit = max(config.recompile_limit, RECOMPILE_LIMIT)
     # The C++ wrapper calls the generated kernels and library functions from C++ instead of
     # a generated Python function: ~0.2 ms less per call of the planar contact linearization
     # (its compilation takes about 1.7 times as long).
-    compiled = torch.compile(fn, dynamic=dynamic, options={"cpp_wrapper": cpp_wrapper})
+    options: dict[str, Any] = {"cpp_wrapper": cpp_wrapper}
+    if not vectorize:
+        # Inductor vectorizes a loop along its innermost dimension; where that is a few slots
+        # or rows (2 to 16), each vector is a masked load or store through a temporary array,
+        # slower than the scalar loop (the simulator's kernel: 1.6x at 1,024 scenes).
+        options["cpp.simdlen"] = 1
+    compiled = torch.compile(fn, dynamic=dynamic, options=options)
 
     @functools.wraps(fn)
     def call(*args: Any, **kwargs: Any) -> Any:
@@ -89,10 +100,16 @@ def _fresh(value: Any) -> Any:
 
 
 def kernel(
-    fn: _Kernel, *, compiled: bool, cpp_wrapper: bool = True, dynamic: bool | None = None
+    fn: _Kernel,
+    *,
+    compiled: bool,
+    cpp_wrapper: bool = True,
+    dynamic: bool | None = None,
+    vectorize: bool = True,
 ) -> _Kernel:
     """``fn`` itself, or its compiled form if ``compiled`` (one per process and options:
     ``cpp_wrapper``, Inductor's C++ wrapper or its Python wrapper, which compiles faster;
     ``dynamic``, :func:`torch.compile`'s: None compiles a second shape with dynamic sizes,
-    False every shape anew)."""
-    return cast(_Kernel, _compile(fn, cpp_wrapper, dynamic)) if compiled else fn
+    False every shape anew; ``vectorize``, whether the CPU loops use SIMD vectors: scalar
+    loops are faster where the innermost dimensions are a few slots or rows)."""
+    return cast(_Kernel, _compile(fn, cpp_wrapper, dynamic, vectorize)) if compiled else fn

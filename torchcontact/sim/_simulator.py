@@ -572,7 +572,8 @@ class Simulator:
         control, force, friction = (
             None if t is None else flat(t) for t in (control, force, friction)
         )
-        step = kernel(_step_at_modes, compiled=True)
+        # Scalar loops: the kernel's innermost dimensions are slots and rows (see kernel).
+        step = kernel(_step_at_modes, compiled=True, vectorize=False)
 
         def run(index: Tensor | None, guess: Tensor) -> _KernelStep:
             # The mode solve's slots: as many as the most non-separated slots of an entry, at
