@@ -110,7 +110,7 @@ def test_resampling_draws_the_library_scheme_and_the_evidence_stays_finite() -> 
     cov = torch.diag(torch.tensor([4e-6, 1e-14, 1e-14, 1e-4, 1e-14, 1e-14], dtype=F64))
     generator = torch.Generator().manual_seed(2)
     belief = pf.init(Gaussian(box, cov.expand(2, 6, 6)), generator=generator)
-    y = torch.tensor([0.0, 0.05, 0.0], dtype=F64).expand(2, 3)
+    y = torch.tensor([0.004, 0.05, 0.0], dtype=F64).expand(2, 3)
     belief = pf.step(belief, y, control=KinematicControl(q=q_kin[0], v=v_kin[0]))
     clone = torch.Generator().set_state(generator.get_state())
     index = resample(belief.log_weights, method="systematic", generator=clone)

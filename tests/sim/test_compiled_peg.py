@@ -91,7 +91,7 @@ def test_compiled_step_factors_the_systems_of_the_eager_step(
         return factor(A, **kwargs)
 
     monkeypatch.setattr(torch.linalg, "lu_factor", recorded)
-    monkeypatch.setattr(simulator_module, "kernel", lambda fn, compiled: fn)
+    monkeypatch.setattr(simulator_module, "kernel", lambda fn, **options: fn)
     task = PegInHoleTask(PegInHoleConfig())
     samples = _starts(task, 4)
     largest = []
