@@ -71,12 +71,15 @@ def test_pushed_box_rests_slides_or_tips_and_the_graph_records_it() -> None:
 
     low, high = episodes
     assert low[0] == high[0] == "E2st"  # resting on both bottom corners, no finger
-    assert low[-1] == "E2sl R1st"  # sliding on both corners, pushed by a sticking finger
+    # Sliding on both corners, pushed by a sticking finger whose face is flat on the box's:
+    # the push is shared by its two corners (the split between them is not unique; the mode
+    # solve's shares the load).
+    assert low[-1] == "E2sl R2st"
     assert high[-1] == "E1st R1sl"  # tipping on one corner, the finger sliding up its face
     assert run.q[-1, 1, 0, 2].item() < -0.1  # the high push rotated the box clockwise
     assert abs(run.q[-1, 0, 0, 2].item()) < 1e-9  # the low push did not
     labels = {str(state.contact) for state in graph.states}
-    assert {"E2st", "E2sl R1st", "E1st R1sl"} <= labels
+    assert {"E2st", "E2sl R2st", "E1st R1sl"} <= labels
     # The resting state leads (possibly through a transient) to sliding and to tipping, and
     # the final states are absorbing in these rollouts.
     for final in (low[-1], high[-1]):
