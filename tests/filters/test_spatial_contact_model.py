@@ -843,6 +843,41 @@ def test_gaps_within_the_tolerance_are_closed() -> None:
     assert float(f_open[0, 2]) == pytest.approx(HALF[2], abs=1e-9)  # the gap closes in a step
 
 
+@pytest.mark.parametrize(
+    ("gap", "expected"),
+    [(0.01, [0.0, -math.inf]), (0.0002, [-math.inf, 0.0]), (0.0, [-math.inf, 0.0])],
+)
+def test_penetrations_within_the_gap_do_not_rule_out_separated_slots(
+    gap: float, expected: list[float]
+) -> None:
+    """A box rising at 0.15 m/s whose mean lies 6 mm inside the table (the scene's
+    ``recovery_speed`` of 0.1 m/s caps the penetration the problem sees at 1 mm), two modes:
+    free flight (every slot separated), whose step leaves at v⁺ = 0.15 − g h = 0.052 m/s,
+    and the bottom corners sticking. With the penetration taken as touching (gap 10 mm),
+    free flight is consistent (its corners' gap rate v⁺ > 0) and its step is the closed-form
+    flight, while sticking corners would pull the box down (pn < 0). With a gap of 0.2 mm
+    the corners stay 0.8 mm inside: free flight would penetrate further (gap rate
+    v⁺ − 0.0008 / h < 0) and is ruled out, and the sticking corners push the box out
+    (pn > 0); likewise without the gap."""
+    scene = hand_scene(height=1.0)
+    modes = torch.zeros(2, scene.num_slots, dtype=torch.long)
+    modes[1, :4] = 1
+    rise, depth = 0.15, 0.006
+    x = state((0.01, -0.02, HALF[2] - depth), (0.0, 0.0, rise, 0.0, 0.0, 0.0))
+    zeros = torch.zeros(4, dtype=DT)
+    control = RobotControl(q_robot=zeros, v_robot=zeros)
+    model = model_of(scene, modes, inconsistency_penalty=math.inf, consistency_gap=gap)
+    _, f, converged = model.linearize(x, control=control)
+    assert converged.tolist() == [True, True]
+    v_up = rise - 9.81 * H
+    assert float(f[0, 9]) == pytest.approx(v_up, abs=1e-12)  # free flight: closed form
+    assert float(f[0, 2]) == pytest.approx(HALF[2] - depth + H * v_up, abs=1e-12)
+    belief = RBPF(model, 2).init(Gaussian(x, 1e-8 * torch.eye(12, dtype=DT)))
+    weights = model.mode_dynamics(belief, control).mode_log_weight
+    assert weights is not None
+    assert weights.tolist() == expected  # 0 and -inf are exact
+
+
 def test_group_states_take_the_largest_state_of_each_group() -> None:
     """Hand-written modes: the table group (the box's corners) with one corner sticking and
     one sliding along direction 3 is sliding (code 2) on every corner; a finger link group

@@ -200,9 +200,13 @@ class SpatialContactModel(ContactModelFields):
     a few millimetres above or inside it. Mode :math:`k` says which contacts touch, so its
     step at :math:`\bar x` is taken with the gaps of those contacts closed up to
     ``consistency_gap`` (a gap :math:`\phi` becomes :math:`\phi - \mathrm{clip}(\phi,
-    \pm\,\mathrm{gap})`): the mean's error along a contact normal is not turned into a
-    velocity that closes it within one step. The Jacobian holds that shift fixed (the
-    derivative of the gaps is kept). With ``consistency_gap = 0`` the linearization is that
+    \pm\,\mathrm{gap})`), and the penetrations of the slots it separates are taken as
+    touching up to the same depth (:math:`\phi - \mathrm{clip}(\phi, -\mathrm{gap}, 0)`):
+    the mean's error along a contact normal is neither turned into a velocity that closes it
+    within one step nor, at a contact the mode separates, into a penetration that rules the
+    mode out (on the Barrett box grasp, a box lifted by the fingers whose mean lies a fraction
+    of a millimetre inside the table). The Jacobian holds that shift fixed (the derivative
+    of the gaps is kept). With ``consistency_gap = 0`` the linearization is that
     of :meth:`step`.
 
     Contacts resolved at the mean. A rollout's contacts fix which corners of a box touch
@@ -293,7 +297,8 @@ class SpatialContactModel(ContactModelFields):
             out) of modes inconsistent at the linearization point; ``0`` disables the gate.
         consistency_tolerance: relative tolerance of the consistency check.
         consistency_gap: gaps (metres) of a mode's contacts that the linearized step and the
-            consistency check treat as closed.
+            consistency check treat as closed, and depths of the penetrations of its
+            separated slots that they treat as touching.
         resolve_slots: a mode fixes the state of each slot group; its slots and sliding
             directions are resolved at the linearization point (see the class docstring).
             :meth:`from_rollout` then merges the modes with the same group states.
@@ -825,10 +830,13 @@ class SpatialContactModel(ContactModelFields):
 
     def _closed_gaps(self, problem: ContactProblem, modes: Tensor) -> ContactProblem:
         """The problem of the consistency check: the gaps of the mode's contacts closed up to
-        ``consistency_gap`` (see the class docstring). It runs on the slots that some mode
+        ``consistency_gap``, the penetrations of its separated slots up to that depth taken
+        as touching (see the class docstring). It runs on the slots that some mode
         activates (a slot that none does would make every mode inconsistent alike)."""
         gap, phi = self.consistency_gap, problem.phi
-        return _with_phi(problem, torch.where(modes >= 1, phi - phi.clamp(-gap, gap), phi))
+        return _with_phi(
+            problem, torch.where(modes >= 1, phi - phi.clamp(-gap, gap), phi - phi.clamp(-gap, 0.0))
+        )
 
     def _resolved(
         self, problem: ContactProblem, modes: Tensor, slots: Tensor
