@@ -67,7 +67,7 @@ def update_mode(problem: ContactProblem, solution: Solution) -> Tensor:
         # A planar slot that closes while it slips starts sliding against its slip (a box
         # landing or starting to slide on two corners; from sticking its active set cycled).
         # Spatial slots keep sticking: four coplanar corners sliding make the mode solve's
-        # system singular, where its split's derivative is not yet the limit's (issue 22).
+        # system singular, where the derivative of its split is not yet the limit's.
         slips = slip.abs().amax(dim=-1) > tol * scale_v
         closing = torch.where(slips, SLIDING + slip.argmin(dim=-1), closing)
     updated = torch.where(penetrates, closing, mode)
