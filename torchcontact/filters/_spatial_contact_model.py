@@ -232,10 +232,9 @@ class SpatialContactModel(ContactModelFields):
 
     Modes ruled out. A mode whose equalities contradict each other at :math:`\bar x` (its
     ``solve_mode`` does not converge and its answer does not solve the contact problem
-    within ``consistency_tolerance`` of its scales, the tolerance its consistency is judged
-    by, as the simulator's retry rule: a grasp's redundant rows stall the equality residual
-    above the solver's tolerance while the impulses are consistent and solve the problem)
-    gets the log-weight :math:`-\infty` for the step
+    within :data:`SOLVED_RESIDUAL` of its scales, as the simulator's retry rule: a grasp's
+    redundant rows stall the equality residual above the solver's tolerance while the impulses are
+    consistent and solve the problem) gets the log-weight :math:`-\infty` for the step
     (``ModeDynamics.mode_log_weight``; its ``F`` and ``c`` are placeholders, the identity
     and the chart's origin). A mode that converges but contradicts itself (a separated slot
     that would penetrate, friction that would reverse the slip, a contact that would pull)
@@ -296,9 +295,7 @@ class SpatialContactModel(ContactModelFields):
             readings of :meth:`tactile_log_likelihood` are theirs concatenated in this order.
         inconsistency_penalty: log-weight penalty (nats, ``>= 0``; ``inf`` rules such modes
             out) of modes inconsistent at the linearization point; ``0`` disables the gate.
-        consistency_tolerance: relative tolerance of the consistency check, and the largest
-            relative LCP residual of a consistent mode solve that stalled and is taken as
-            solved (see Modes ruled out).
+        consistency_tolerance: relative tolerance of the consistency check.
         consistency_gap: gaps (metres) of a mode's contacts that the linearized step and the
             consistency check treat as closed, and depths of the penetrations of its
             separated slots that they treat as touching.
@@ -680,8 +677,7 @@ class SpatialContactModel(ContactModelFields):
             residual = relative_residual(
                 problem, v_next=solution.v_next, pn=solution.pn, pt=solution.pt
             )
-            solved = consistent & (residual <= self.consistency_tolerance)
-            converged = solution.status.converged | solved
+            converged = solution.status.converged | (consistent & (residual <= SOLVED_RESIDUAL))
             converged = converged & reachable & self._plausible(x, solution.v_next)
         if chart_mode is None:
             chart = f
@@ -1068,6 +1064,14 @@ def _resolved_sliding(problem: ContactProblem, modes: Tensor) -> Tensor:
     modes = torch.where(sliding, SLIDING + slip.argmin(-1), modes)
     corrected = update_mode(problem, solve_mode_unchecked(problem, modes))
     return torch.where(sliding & is_sliding(corrected), corrected, modes)
+
+
+#: Largest relative LCP residual (:func:`~torchcontact.contact.relative_residual`) of a mode
+#: solve that did not converge but is consistent and taken as solved: the step's velocities
+#: and impulses are off by at most that share of the problem's scales. Equalities that
+#: contradict each other leave residuals of the order of the scales; a grasp's redundant rows
+#: stall the iterations at 1e-5 to 1e-2 of them (BarrettHand on a box).
+SOLVED_RESIDUAL = 1e-2
 
 
 def _select_slots(problem: ContactProblem, slots: Tensor) -> ContactProblem:
