@@ -19,6 +19,7 @@ codes 0–3 only (:func:`num_modes`).
 
 from torchcontact.contact._active_set import solve_active_set, update_mode
 from torchcontact.contact._examples import BOX_CORNER_SIGNS, planar_box_problem
+from torchcontact.contact._impulse_split import redistribute_impulses
 from torchcontact.contact._lcp import (
     SEPARATED,
     SLIDING,
@@ -83,6 +84,7 @@ __all__ = [
     "num_modes",
     "planar_box_problem",
     "project_capped_simplex",
+    "redistribute_impulses",
     "relative_residual",
     "solve",
     "solve_active_set",

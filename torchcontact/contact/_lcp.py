@@ -455,6 +455,41 @@ def consistent_with_mode(
     Returns:
         ``(*B,)`` bool, ``True`` where the solution is consistent with its modes.
     """
+    velocity_ok, impulse_ok = mode_conditions(
+        problem, v_next=v_next, pn=pn, pt=pt, mode=mode, atol=atol, v_free=v_free
+    )
+    return (velocity_ok & impulse_ok).all(dim=-1)
+
+
+def mode_conditions(
+    problem: ContactProblem,
+    *,
+    v_next: Tensor,
+    pn: Tensor,
+    pt: Tensor,
+    mode: Tensor,
+    atol: float,
+    v_free: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """The conditions of :func:`consistent_with_mode`, per slot, in two parts: those on the
+    velocities (a separated slot does not penetrate; an active slot's gap rate is zero; a
+    sticking slot does not slip; a sliding slot slips against its friction) and those on
+    the impulses (non-negative; none at a separated or padding slot; friction inside the cone
+    when sticking, on its boundary along the slot's directions when sliding).
+
+    Args:
+        problem: the contact problem, batch ``*B``.
+        v_next: ``(*B, n)`` end-of-step velocity.
+        pn: ``(*B, K)`` normal impulses.
+        pt: ``(*B, K, D)`` friction impulses.
+        mode: ``(*B, K)`` long contact modes (broadcastable).
+        atol: relative tolerance.
+        v_free: ``(*B, n)`` the contact-free velocity if the caller has it (else computed).
+
+    Returns:
+        ``velocity_ok, impulse_ok``: ``(*B, K)`` bool each (``True`` at padding slots'
+        velocity conditions).
+    """
     gap_rate, slip = velocity_terms(problem, v_next)
     velocity_scale, impulse_scale = _scales(
         problem, v_next=v_next, pn=pn, pt=pt, gap_rate=gap_rate, slip=slip, v_free=v_free
@@ -473,22 +508,27 @@ def consistent_with_mode(
 
     nonnegative = (pn >= -p_tol) & (pt >= -p_tol_d).all(dim=-1)
     no_impulse = (pn.abs() <= p_tol) & (pt.abs() <= p_tol_d).all(dim=-1)
-    separated_ok = no_impulse & (gap_rate >= -v_tol)
     closed = gap_rate.abs() <= v_tol
-    sticking_ok = closed & (slip.abs() <= v_tol.unsqueeze(-1)).all(dim=-1)
-    sticking_ok = sticking_ok & (friction_total <= mu_pn + p_tol)
-    sliding_ok = closed & ((friction_total - mu_pn).abs() <= p_tol)
-    sliding_ok = sliding_ok & ((pt_carried - friction_total).abs() <= p_tol)
+    sticking_slip = closed & (slip.abs() <= v_tol.unsqueeze(-1)).all(dim=-1)
+    sticking_cone = friction_total <= mu_pn + p_tol
+    sliding_cone = (friction_total - mu_pn).abs() <= p_tol
+    sliding_cone = sliding_cone & ((pt_carried - friction_total).abs() <= p_tol)
     least_slip = slip.amin(dim=-1, keepdim=True) + v_tol.unsqueeze(-1)
     against = (slip_pair <= v_tol.unsqueeze(-1)) & (slip_pair <= least_slip)
-    sliding_ok = sliding_ok & against.all(dim=-1)
-    per_slot = torch.where(
+    sliding_slip = closed & against.all(dim=-1)
+    velocity_ok = torch.where(
         mode == SEPARATED,
-        separated_ok,
-        torch.where(mode == STICKING, sticking_ok, sliding_ok),
+        gap_rate >= -v_tol,
+        torch.where(mode == STICKING, sticking_slip, sliding_slip),
     )
-    per_slot = torch.where(problem.slot_mask, per_slot & nonnegative, no_impulse)
-    return per_slot.all(dim=-1)
+    impulse_ok = torch.where(
+        mode == SEPARATED,
+        no_impulse,
+        torch.where(mode == STICKING, sticking_cone, sliding_cone) & nonnegative,
+    )
+    velocity_ok = velocity_ok | ~problem.slot_mask
+    impulse_ok = torch.where(problem.slot_mask, impulse_ok, no_impulse)
+    return velocity_ok, impulse_ok
 
 
 def check_solution(problem: object, solution: object) -> None:
