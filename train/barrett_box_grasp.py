@@ -14,7 +14,9 @@ it before the grasp; ``--no-known-size``: the nominal size too).
 Estimators (:func:`~torchcontact.experiments.run_box_estimators`), all batched over trials:
 ``rbpf`` (the spatial contact RBPF, all-modes proposal: with few modes every mode of every
 particle is predicted exactly, no sampling noise in the mode; projection out of contact
-after each step), ``rbpf_no_projection`` (ablation), ``pf`` (the simulator particle filter
+after each step), ``rbpf_no_projection`` (ablation), ``rbpf_servo`` (the hand's fingers
+servoed in the RBPF's model, its measured joint velocities evidence for the modes), ``pf``
+(the simulator particle filter
 with as many particles as fit in the RBPF's CPU time per step), ``pf_same_n`` (the RBPF's
 particle count), ``ekf`` (constant velocity on SE(3), no contact) and ``camera`` (the last
 pose seen).
@@ -78,7 +80,8 @@ class Args(BarrettBoxGrasp):
     rbpf: bool = True
     """run the contact RBPF (and its ablation); without it pf gets rbpf_particles"""
     projection: bool = True
-    """run the RBPF with the projection out of contact (the rbpf row); the ablation runs always"""
+    """run the RBPFs with the projection out of contact (the rbpf and rbpf_servo rows); the
+    ablation runs always"""
     proposal: Literal["all_modes", "bootstrap"] = "all_modes"
     """the RBPF's proposal"""
     known_size: bool = True
@@ -154,7 +157,7 @@ def run(args: Args) -> dict[str, Any]:
         rbpf_particles=args.rbpf_particles,
         pf_particles=args.pf_particles,
         model=model,
-        rbpf_methods=RBPF_METHODS if args.projection else RBPF_METHODS[1:],
+        rbpf_methods=tuple(m for m in RBPF_METHODS if args.projection or m == "rbpf_no_projection"),
         proposal=args.proposal,
         known_size=args.known_size,
         seed=args.seed,

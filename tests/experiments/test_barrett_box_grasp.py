@@ -261,7 +261,7 @@ def test_the_script_runs_with_a_tiny_budget(tmp_path: Path) -> None:
         run_dir, [f.name for f in dataclasses.fields(args)], {"name": "tiny", "fast": True}
     )
     records = json.loads((run_dir / "results.json").read_text())["methods"]
-    methods = ["rbpf", "rbpf_no_projection", "pf", "pf_same_n", "ekf", "camera"]
+    methods = ["rbpf", "rbpf_no_projection", "rbpf_servo", "pf", "pf_same_n", "ekf", "camera"]
     assert [r["method"] for r in records] == methods
     for name in ("results.md", "results.json", "errors.png", "snapshots.png", "states.png"):
         assert (run_dir / name).is_file(), name
@@ -315,13 +315,6 @@ def test_spatial_particle_filter_rejects_a_planar_control() -> None:
             scene,
             2,
             process_std=torch.zeros(6, dtype=F64),
-            measurement_std=torch.ones(6, dtype=F64),
-        )
-    with pytest.raises(ValueError, match=r"^scene: the filter's robots must be kinematic"):
-        SimulatorParticleFilter(
-            barrett_box_scene((0.03, 0.025, 0.05), 0.3, 0.5, barrett_member(robot)),
-            2,
-            process_std=torch.zeros(12, dtype=F64),
             measurement_std=torch.ones(6, dtype=F64),
         )
     pf = SimulatorParticleFilter(

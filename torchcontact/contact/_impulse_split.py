@@ -51,9 +51,9 @@ def redistribute_impulses(problem: ContactProblem, solution: Solution, *, atol: 
     over those, zero along the others); the cone conditions with half of the check's
     tolerance ``atol`` relative to a lower bound of its impulse scale at any split (that of
     :func:`is_consistent` without the impulses: the momentum change and the problem's
-    floor), the generalized impulse to HiGHS's feasibility tolerance in units of that scale. Problems
-    whose velocities already violate their modes, or whose impulses satisfy them, are not
-    touched.
+    floor), the generalized impulse to HiGHS's feasibility tolerance in units of that
+    scale. Problems whose velocities already violate their modes, or whose impulses satisfy
+    them, are not touched.
 
     Args:
         problem: the contact problem, batch ``*B``.

@@ -65,9 +65,15 @@ PF_NOISE_STD = (5e-4, 5e-4, 5e-4, 5e-3, 5e-3, 5e-3, 0.01, 0.01, 0.01, 0.2, 0.2, 
 #: Per-step process noise std of the RBPF's modes, in the same tangent.
 RBPF_NOISE_STD = (2e-4, 2e-4, 2e-4, 2e-3, 2e-3, 2e-3, 5e-3, 5e-3, 5e-3, 0.05, 0.05, 0.05)
 #: Every method of :func:`run_box_estimators`, in table order.
-BOX_METHODS = ("rbpf", "rbpf_no_projection", "pf", "pf_same_n", "ekf", "camera")
-#: The RBPF methods: with the projection out of contact, and without (the ablation).
-RBPF_METHODS = ("rbpf", "rbpf_no_projection")
+BOX_METHODS = ("rbpf", "rbpf_no_projection", "rbpf_servo", "pf", "pf_same_n", "ekf", "camera")
+#: The RBPF methods: with the projection out of contact, without (the ablation), and with
+#: the hand's fingers servoed in the filter's model (see :func:`box_filter_scene`).
+RBPF_METHODS = ("rbpf", "rbpf_no_projection", "rbpf_servo")
+#: Each RBPF method's offset of the filters' seed (the PFs take 4 and 5).
+RBPF_SEED_OFFSET = {"rbpf": 2, "rbpf_no_projection": 3, "rbpf_servo": 6}
+#: Std (rad/s) of the hand's measured joint velocities at the end of a step about a mode's
+#: servoed step at the mixture mean (``rbpf_servo``): the fingers close at up to 1.5 rad/s.
+JOINT_VELOCITY_SIGMA = 0.1
 #: The simulator PF's exact solvers: Lemke only. On the grasp's redundant rows the QP fallback
 #: took 2.7 CPU s per problem (99 % of a 2-particle run); the particles Lemke leaves
 #: unsolved get weight zero.
@@ -87,23 +93,38 @@ PRIOR_STD = (0.005, 0.005, 0.005, 0.035, 0.035, 0.035, 0.01, 0.01, 0.01, 0.1, 0.
 
 
 def box_filter_scene(
-    settings: BarrettBoxGrasp, half_extents: tuple[float, float, float] | None = None
+    settings: BarrettBoxGrasp,
+    half_extents: tuple[float, float, float] | None = None,
+    *,
+    servo_hand: bool = False,
 ) -> Scene:
     """The filters' scene: the box (nominal mass and friction; the given size, else the
-    nominal one) on the table and the kinematic robot."""
+    nominal one) on the table and the robot, kinematic (its measured joint motion imposed on
+    the box at every contact), or with ``servo_hand`` as the ground truth's (the WAM's
+    joints kinematic, the hand's servoed with the robot's own gains, limits and commands, so
+    that the fingers yield to the box wherever the filter places it)."""
     return barrett_box_scene(
         settings.nominal_half_extents() if half_extents is None else half_extents,
         settings.nominal_mass(),
         settings.nominal_friction(),
-        barrett_member(load("wam7_bhand"), mode="kinematic"),
+        barrett_member(load("wam7_bhand"), mode="servo" if servo_hand else "kinematic"),
     )
 
 
-def joint_motion(trials: BoxTrials, t: int) -> RobotControl:
-    """The measured robot motion of step ``t`` (angles at its start, velocities over it)."""
+def joint_motion(trials: BoxTrials, t: int, *, servo_hand: bool = False) -> RobotControl:
+    """The robot's measured motion over step ``t``: its joint angles at the start and
+    velocities over the step; with ``servo_hand`` (:func:`box_filter_scene`), the velocities
+    at the start, the commands over the step and the measured velocities at its end."""
     assert trials.truth.q_robot is not None
     assert trials.truth.v_robot is not None
-    return RobotControl(q_robot=trials.truth.q_robot[t], v_robot=trials.truth.v_robot[t + 1])
+    if not servo_hand:
+        return RobotControl(q_robot=trials.truth.q_robot[t], v_robot=trials.truth.v_robot[t + 1])
+    return RobotControl(
+        q_robot=trials.truth.q_robot[t],
+        v_robot=trials.truth.v_robot[t],
+        joint_command=trials.commands[t].expand(trials.batch, -1),
+        v_robot_next=trials.truth.v_robot[t + 1],
+    )
 
 
 def box_prior(trials: BoxTrials, gen: torch.Generator) -> Gaussian:
@@ -283,12 +304,14 @@ def run_box_rbpf(
     rbpf = RBPF(model, num_particles, proposal=proposal)  # type: ignore[arg-type]
     belief = rbpf.init(prior)
     assert trials.truth.q_robot is not None
+    assert trials.truth.v_robot is not None
     q_robot = trials.truth.q_robot
     mode_states = pair_states(model.modes, pair_slots(model.scene))  # (K, P)
     one_hot = torch.nn.functional.one_hot(mode_states, 3).to(F64)  # (K, P, 3)
     poses, probs, clouds, cloud_weights = [], [], [], []
+    servo_hand = model.scene.num_servo_joints > 0
     for t in range(trials.steps):
-        control = joint_motion(trials, t)
+        control = joint_motion(trials, t, servo_hand=servo_hand)
         extra = model.tactile_log_likelihood(
             trials.readings[t], pose=belief.mean()[..., :7], control=control
         )
@@ -296,8 +319,10 @@ def run_box_rbpf(
             belief, trials.y[t], extra_log_likelihood=extra, control=control, generator=gen
         )
         if projection:
-            # the robot where the step leaves it: the belief's time
-            after = RobotControl(q_robot=q_robot[t + 1], v_robot=control.v_robot)
+            # the robot where and as the step leaves it: the belief's time
+            after = dataclasses.replace(
+                control, q_robot=q_robot[t + 1], v_robot=trials.truth.v_robot[t + 1]
+            )
             # each mode's contacts where the belief now is (its group states resolved)
             table = model.slot_modes(belief.mean(), control=after)
             belief = project_out_of_contact(
@@ -382,7 +407,9 @@ def run_box_estimators(
     box's size (as a camera measures it before the grasp: each group of trials of one box
     runs with its scene), else they assume the nominal size too. With ``model``, the RBPF
     methods of ``rbpf_methods`` (of :data:`RBPF_METHODS`: ``rbpf`` with the projection out of
-    contact, ``rbpf_no_projection`` without) run with ``rbpf_particles`` particles (0: the
+    contact, ``rbpf_no_projection`` without, ``rbpf_servo`` with the projection, the hand
+    servoed in its model and the hand's measured joint velocities as evidence for the modes,
+    :data:`JOINT_VELOCITY_SIGMA`) run with ``rbpf_particles`` particles (0: the
     model's number of modes ``K``), and ``pf_same_n`` with as many. ``pf`` has
     ``pf_particles`` if it is positive, else as many as fit in the first RBPF method's CPU
     time per step (a line through timed runs with 2 and 8 particles, then a run at its
@@ -422,19 +449,21 @@ def run_box_estimators(
     if model is not None and rbpf_particles == 0:
         rbpf_particles = model.num_modes
     for method in rbpf_methods if model is not None else ():
-        gen = generator(2 + RBPF_METHODS.index(method))
+        gen = generator(RBPF_SEED_OFFSET[method])
 
         def rbpf_group(
             part: BoxTrials,
             part_prior: Gaussian,
             half: tuple[float, float, float] | None,
-            projection: bool = method == "rbpf",
+            projection: bool = method != "rbpf_no_projection",
+            servo_hand: bool = method == "rbpf_servo",
             gen: torch.Generator = gen,
         ) -> dict[str, Tensor]:
             assert model is not None
-            scene = box_filter_scene(settings, half)
+            scene = box_filter_scene(settings, half, servo_hand=servo_hand)
+            sigma = JOINT_VELOCITY_SIGMA if servo_hand else math.inf
             return run_box_rbpf(
-                dataclasses.replace(model, scene=scene),
+                dataclasses.replace(model, scene=scene, joint_velocity_sigma=sigma),
                 part,
                 rbpf_particles,
                 gen,

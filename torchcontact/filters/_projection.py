@@ -18,6 +18,7 @@ from torchcontact.filters._spatial_contact_model import (
     RobotControl,
     check_control,
     robot_contact_problem,
+    servo_velocities,
 )
 from torchcontact.geometry import quat_to_matrix
 from torchcontact.sim import Scene, penetration
@@ -78,8 +79,10 @@ def project_out_of_contact(
         q_kinematic: ``(*B, Nk, 3)`` kinematic-body poses (world frame) at the belief's time
             (planar scenes).
         gap_sigma: ``σ``, the pseudo-measurement's noise std, metres, ``> 0``.
-        control: the robots' joint positions and base poses (and kinematic bodies' poses) at
-            the belief's time, batch ``*B`` (spatial scenes; their velocities are not used).
+        control: the robots' joint positions, velocities and base poses (and kinematic
+            bodies' poses) at the belief's time, batch ``*B`` (spatial scenes; the joints'
+            velocities, kinematic or servo, enter the gap rates and slips of the mode's
+            contacts).
         mode_table: ``(K, S)`` long, the model's per-slot modes of its ``K`` modes
             (``S = scene.num_slots``; spatial scenes), or ``(*B, K, S)`` per batch entry
             (e.g. :meth:`~torchcontact.filters.SpatialContactModel.slot_modes` at the
@@ -194,6 +197,11 @@ def _project_spatial(
     rate_rows[..., 1:, 6:] = Jt
     rates = (rate_rows[..., 6:] @ twist[:, None]).squeeze(-1)  # (P, m, 1 + D/2)
     rates = rates + torch.cat([bn[:, slots, None], bt], -1)
+    if scene.num_servo_joints:
+        # the servo joints' motion, columns after the body's twist (kinematic joints: in b)
+        joints = servo_velocities(scene, ctrl.expand(N).v_robot)[:, None, :, None]
+        rows = torch.cat([problem.Jn[:, slots, None, 6:], problem.Jt[:, slots, :half, 6:]], 2)
+        rates = rates + (rows @ joints).squeeze(-1)
     rate_mask = torch.cat(
         [closed[:, slots, None], sticking[:, slots, None].expand(-1, -1, half)], -1
     )

@@ -98,15 +98,15 @@ class SimulatorParticleFilter:
     control (:class:`~torchcontact.filters.KinematicControl`). Spatial scenes: the state is
     the 13 numbers of :data:`~torchcontact.filters.SE3` with a twist (position, unit
     quaternion, ``(v, ω)``), noise and measurement residuals live in its tangent
-    (``retract``/``local``), and the control is the measured motion of the scene's kinematic
-    robots (:class:`~torchcontact.filters.RobotControl`: joint angles and velocities, base
-    poses and twists).
+    (``retract``/``local``), and the control is the measured motion of the scene's robots
+    (:class:`~torchcontact.filters.RobotControl`: joint angles and velocities, base poses and
+    twists, and for servo joints their commands: they are simulated with each particle).
 
     One :meth:`step` (Gordon, Salmond and Smith 1993):
 
     1. resample the particles with ``resampling`` (:func:`~torchcontact.filters.resample`),
        except the prior's draws of :meth:`init` (independent and equally weighted);
-    2. step every particle through the simulator under the step's kinematic ``control``
+    2. step every particle through the simulator under the step's ``control``
        (its per-slot modes are the simulator's first guess), then add process noise
        :math:`w \sim N(0, \mathrm{diag}(\sigma_w^2))`;
     3. weight it by :math:`\log p(y \mid x) = \log N(y; x_{0:3}, \mathrm{diag}(\sigma_y^2))`
@@ -151,11 +151,6 @@ class SimulatorParticleFilter:
     def __post_init__(self) -> None:
         if not isinstance(self.scene, Scene) or len(self.scene.dynamic) != 1:
             raise ValueError("scene: expected a Scene with one dynamic body")
-        servo = [member.name for member in self.scene.robots if member.servo_joints]
-        if servo:
-            raise ValueError(
-                f"scene: the filter's robots must be kinematic, got servo joints on {servo}"
-            )
         check_int("num_particles", self.num_particles, low=1)
         dimension = self.scene.dimension
         sizes = (_TANGENT_SIZE[dimension], _MEASUREMENT_SIZE[dimension])
@@ -347,20 +342,28 @@ class SimulatorParticleFilter:
             ("v_robot", (*batch, joints)),
             ("robot_base", (*batch, robots, 7)),
             ("base_twist", (*batch, robots, 6)),
+            ("joint_command", (*batch, joints)),
         ):
             value = getattr(control, name)
             if value is not None:
                 check_batched(f"control.{name}", value, shape=shape, like=like, like_name="belief")
                 value = value.unsqueeze(len(batch)).expand(*batch, N, *shape[len(batch) :])
             values[name] = value
+        # Kinematic robots move as measured over the step; servo joints start from their
+        # measured velocities under the commands (see RobotControl).
+        servo = scene.num_servo_joints > 0
+        command = values["joint_command"] if servo else values["v_robot"]
+        if command is None:
+            raise ValueError("control.joint_command: required for a scene with servo joints")
         state = simulator.initial_state(
             q=x[..., None, :7],
             v=x[..., None, 7:],
             q_robot=values["q_robot"].contiguous(),
+            v_robot=values["v_robot"].contiguous() if servo else None,
             robot_base=values["robot_base"],
         )
         state = dataclasses.replace(state, mode=mode)
         result = simulator.step(
-            state, joint_command=values["v_robot"].contiguous(), base_twist=values["base_twist"]
+            state, joint_command=command.contiguous(), base_twist=values["base_twist"]
         )
         return state, result

@@ -46,13 +46,20 @@ OBS_TANGENT_DIM = 6  # its residual (δp, δθ)
 
 @dataclass(frozen=True, eq=False)
 class RobotControl:
-    """The measured motion of a spatial scene's kinematic robots (and kinematic bodies) over
-    one filter step, world frame.
+    """The measured motion of a spatial scene's robots (and kinematic bodies) over one filter
+    step, world frame.
+
+    Robots whose joints are all kinematic move as measured: ``v_robot`` is their motion over
+    the step. Robots with servo joints (``RobotMember(mode="servo")``, a hand whose fingers
+    yield to the object) are stepped with the object: ``v_robot`` is then the joints'
+    velocity at the start of the step and ``joint_command`` what the robot was commanded, as
+    in :meth:`~torchcontact.sim.Simulator.step`.
 
     Attributes:
         q_robot: ``(*B, Nj)`` joint positions at the start of the step, robots in scene order
             (rad or m).
-        v_robot: ``(*B, Nj)`` joint velocities during the step.
+        v_robot: ``(*B, Nj)`` joint velocities: during the step (kinematic robots), at its
+            start (scenes with servo joints).
         robot_base: ``(*B, R, 7)`` the robots' base poses (position and unit quaternion
             ``(w, x, y, z)``), or None: each member's ``base_pose``.
         base_twist: ``(*B, R, 6)`` the bases' twists ``(v, ω)`` during the step (at the base
@@ -60,6 +67,12 @@ class RobotControl:
         q_kinematic: ``(*B, Nk, 7)`` poses of the scene's kinematic bodies, or None (required
             when it has some).
         v_kinematic: ``(*B, Nk, 6)`` their twists, or None (at rest).
+        joint_command: ``(*B, Nj)`` the joints' commands over the step (servo targets,
+            kinematic joints' velocities: :meth:`~torchcontact.sim.Simulator.step`'s
+            ``joint_command``), required where the scene has servo joints; None otherwise.
+        v_robot_next: ``(*B, Nj)`` the joints' measured velocities at the end of the step,
+            or None: with servo joints, evidence for the modes (see
+            :attr:`SpatialContactModel.joint_velocity_sigma`).
     """
 
     q_robot: Tensor
@@ -68,6 +81,8 @@ class RobotControl:
     base_twist: Tensor | None = None
     q_kinematic: Tensor | None = None
     v_kinematic: Tensor | None = None
+    joint_command: Tensor | None = None
+    v_robot_next: Tensor | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,6 +95,8 @@ class _Control:
     base_twist: Tensor | None
     q_kinematic: Tensor
     v_kinematic: Tensor | None
+    joint_command: Tensor | None
+    v_robot_next: Tensor | None
 
     def expand(self, repeat: int) -> _Control:
         """Each entry repeated ``repeat`` times, consecutively: ``(P · repeat, ...)``."""
@@ -102,6 +119,8 @@ class _Control:
             base_twist=each(self.base_twist),
             q_kinematic=fn(self.q_kinematic),
             v_kinematic=each(self.v_kinematic),
+            joint_command=each(self.joint_command),
+            v_robot_next=each(self.v_robot_next),
         )
 
 
@@ -119,6 +138,8 @@ class _Linearization:
         nearly: ``(P, K)`` bool, the verdict with ten times the tolerance.
         held: ``(P, 1)`` bool, the point holds its state for the step (no mode usable; every
             mode's ``F``, ``f`` and ``c`` are the identity's).
+        v_servo: ``(P, K, J)`` the servo joints' velocities at the end of each mode's step
+            (``J = scene.num_servo_joints``, robots in scene order).
         touching: ``(P, K, S_a)`` bool, the acting slots each mode closes at ``x̄`` (its
             resolved slots).
         phi: ``(P, S_a)`` the acting slots' gaps at ``x̄``; Jn: ``(P, S_a, 6)`` their normal
@@ -134,6 +155,7 @@ class _Linearization:
     consistent: Tensor
     nearly: Tensor
     held: Tensor
+    v_servo: Tensor
     touching: Tensor
     phi: Tensor
     Jn: Tensor
@@ -142,8 +164,8 @@ class _Linearization:
 
 @dataclass(frozen=True, eq=False, kw_only=True)
 class SpatialContactModel(ContactModelFields):
-    r"""The one dynamic body of a spatial scene (a box on a table, grasped by a kinematic
-    robot), its contact modes, a camera and tactile pads, as a switching model for the
+    r"""The one dynamic body of a spatial scene (a box on a table, grasped by a robot), its
+    contact modes, a camera and tactile pads, as a switching model for the
     :class:`~torchcontact.filters.RBPF`, on the SE(3) manifold.
 
     The state is the body's pose and twist, :math:`x = (p, q, v, \omega)` (13 numbers:
@@ -161,9 +183,15 @@ class SpatialContactModel(ContactModelFields):
         \omega^+_k\big), \qquad
         (v^+_k, \omega^+_k) = \mathrm{solve\_mode}(\mathrm{problem}(x, u), \mathrm{modes}[k])
 
-    where the robots are kinematic (:class:`~torchcontact.sim.RobotMember` with
-    ``mode="kinematic"``): their joint angles and velocities are the measured control
-    :math:`u` (:class:`RobotControl`) and enter the problem through its known velocity terms.
+    where the robots' joint angles and velocities are the measured control :math:`u`
+    (:class:`RobotControl`). Kinematic robots (:class:`~torchcontact.sim.RobotMember` with
+    ``mode="kinematic"``) enter the problem through its known velocity terms. A robot's servo
+    joints (a hand whose fingers yield) are stepped with the body from their measured state
+    under their known commands, as in the simulator, and only the body's part of the step
+    is kept: a grasp of several fingers then constrains the body through fingers that give
+    way, whereas kinematic fingers impose their measured motion on it, which contradicts
+    itself wherever the body's pose is not exactly the true one (three sticking fingers fix
+    nine rows of the body's six velocities).
 
     Linearization. Every mode's step is linearized at the belief's mixture mean
     :math:`\bar x` (:meth:`RBPFBelief.mean`, a weighted Karcher mean on SE(3)), shared by
@@ -282,7 +310,8 @@ class SpatialContactModel(ContactModelFields):
 
     Attributes:
         scene: a spatial scene with exactly one dynamic body (the tracked object), static
-            bodies, kinematic bodies and kinematic robots (``RobotMember(mode="kinematic")``).
+            bodies, kinematic bodies and robots: kinematic (``RobotMember(mode="kinematic")``)
+            or servoed (their joint states measured, see :class:`RobotControl`).
         modes: ``(K, S)`` long table of per-slot modes (``S = scene.num_slots``; values in
             ``[0, num_modes(D))``), e.g. from :func:`collect_modes` over simulated rollouts.
         Q: ``(12, 12)`` or ``(K, 12, 12)`` process noise covariance of a step in the tangent,
@@ -317,6 +346,11 @@ class SpatialContactModel(ContactModelFields):
             mode closes lies more than ``consistency_gap`` from touching at the particle's
             mean, or a candidate slot the mode separates penetrates it by more (see Particles
             checked in the class docstring).
+        joint_velocity_sigma: the standard deviation (rad/s, m/s for prismatic joints) of
+            the measured velocities of the robots' servo joints at the end of a step
+            (``RobotControl.v_robot_next``) about each mode's step at the linearization
+            point; finite, their Gaussian log-likelihood is added to each mode's log-weight
+            (see Proprioception in the class docstring); ``inf`` (the default) ignores them.
         compiled: run the linearization's contact assembly through :func:`torch.compile`
             (one graph and its backward; see
             ``torchcontact._compiled``): the first step compiles (minutes on a CPU
@@ -341,6 +375,7 @@ class SpatialContactModel(ContactModelFields):
     exact_resolution: bool = True
     particle_penalty: float = 0.0
     max_speed_change: float = math.inf
+    joint_velocity_sigma: float = math.inf
     compiled: bool = False
 
     def __post_init__(self) -> None:
@@ -348,6 +383,8 @@ class SpatialContactModel(ContactModelFields):
         if self.max_gain != math.inf:  # inf disables the check
             check_real("max_gain", self.max_gain, low=0.0, low_open=True)
         check_real("particle_penalty", self.particle_penalty, low=0.0)
+        if self.joint_velocity_sigma != math.inf:  # inf ignores the measured velocities
+            check_real("joint_velocity_sigma", self.joint_velocity_sigma, low=0.0, low_open=True)
         if self.max_speed_change != math.inf:  # inf disables the check
             check_real("max_speed_change", self.max_speed_change, low=0.0, low_open=True)
         for name in ("compiled", "exact_resolution"):
@@ -359,12 +396,6 @@ class SpatialContactModel(ContactModelFields):
             raise ValueError(
                 f"scene: expected exactly one dynamic body (the tracked object), got "
                 f"{len(scene.dynamic)}"
-            )
-        servo = [member.name for member in scene.robots if member.servo_joints]
-        if servo:
-            raise ValueError(
-                f"scene: the filter's robots must be kinematic (RobotMember(mode='kinematic')), "
-                f"got servo joints on {servo}"
             )
         modes, S = self.modes, scene.num_slots
         if (
@@ -446,10 +477,10 @@ class SpatialContactModel(ContactModelFields):
         a group takes the group's state, the largest of its slots' states, separated 0,
         sticking 1, sliding 2). The
         rollouts may come from a scene whose robots are servoed (the simulator's); ``scene``
-        is the filter's, with the same slots and kinematic robots.
+        is the filter's, with the same slots.
 
         Args:
-            scene: the filter's scene (one dynamic body, kinematic robots).
+            scene: the filter's scene (one dynamic body).
             rollout: rollouts with ``rollout.mode`` of shape ``(T, *B, S)``.
             Q: ``(12, 12)`` process noise covariance (or ``(K, 12, 12)``).
             R: ``(6, 6)`` camera noise covariance.
@@ -525,7 +556,13 @@ class SpatialContactModel(ContactModelFields):
             dtype=dtype,
             converged=lin.converged,
             nearly=lin.nearly,
-        ).masked_fill(lin.held, 0.0)
+        )
+        if self.joint_velocity_sigma != math.inf and ctrl.v_robot_next is not None:
+            evidence = self._proprioception(ctrl.v_robot_next, lin)
+            # where the mode is not solved its velocities mean nothing (and it is ruled out)
+            evidence = torch.where(lin.converged & evidence.isfinite(), evidence, 0.0)
+            log_weight = log_weight + evidence.to(dtype)
+        log_weight = log_weight.masked_fill(lin.held, 0.0)
         noise = self._noise
         particle_log_weight = None
         if self.particle_penalty > 0:
@@ -729,11 +766,20 @@ class SpatialContactModel(ContactModelFields):
             consistent=consistent,
             nearly=nearly,
             held=stranded,
+            v_servo=solution.v_next[..., 6:],
             touching=modes >= 1,
             phi=at_x.phi[:, 0],
-            Jn=at_x.Jn[:, 0],
+            Jn=at_x.Jn[:, 0, :, :6],  # the body's columns (servo joints after)
             candidate=at_x.slot_mask[:, 0],
         )
+
+    def _proprioception(self, v_robot_next: Tensor, lin: _Linearization) -> Tensor:
+        """``(P, K)``: the log-likelihood (up to a constant) of the servo joints' measured
+        velocities ``v_robot_next (P, Nj)`` (all actuated joints, robots in scene order) under
+        each mode's step (see :attr:`joint_velocity_sigma`)."""
+        measured = servo_velocities(self.scene, v_robot_next)[:, None]  # (P, 1, J)
+        error = (measured - lin.v_servo) / self.joint_velocity_sigma
+        return -0.5 * error.pow(2).sum(-1)
 
     def _plausible(self, x: Tensor, v_next: Tensor) -> Tensor:
         """``(P, K)`` bool: no point of the body changes its velocity by more than
@@ -741,7 +787,7 @@ class SpatialContactModel(ContactModelFields):
         (P, K, 6)`` (bounded by ``|Δv| + |Δω| r``, ``r`` the body's bounding radius)."""
         if self.max_speed_change == math.inf:
             return torch.ones(v_next.shape[:-1], dtype=torch.bool, device=v_next.device)
-        change = v_next - x[:, None, 7:]
+        change = v_next[..., :6] - x[:, None, 7:]  # the body's twist (servo joints after)
         shape: object = self.scene.bodies[self.scene.dynamic[0]].shape
         assert isinstance(shape, Box | Sphere | Capsule)  # a spatial scene's dynamic body
         radius = shape.bounding_radius
@@ -815,6 +861,8 @@ class SpatialContactModel(ContactModelFields):
                 base_twist=ctrl.base_twist,
                 q_kinematic=ctrl.q_kinematic,
                 v_kinematic=ctrl.v_kinematic,
+                joint_command=ctrl.joint_command,
+                v_robot_next=ctrl.v_robot_next,
             )
             # Eager: compiled, its backward through the Tikhonov iterations' LU solves runs as
             # triangular solves on every replica's full system, slower than eager with many
@@ -1221,9 +1269,27 @@ def robot_contact_problem(
         scene,
         state,
         control=None if control.v_kinematic is None else control.v_kinematic.to(x.dtype),
-        joint_command=control.v_robot.to(x.dtype) if scene.robots else None,
+        joint_command=(
+            (control.v_robot if control.joint_command is None else control.joint_command).to(
+                x.dtype
+            )
+            if scene.robots
+            else None
+        ),
         base_twist=None if control.base_twist is None else control.base_twist.to(x.dtype),
     )
+
+
+def servo_velocities(scene: Scene, v_robot: Tensor) -> Tensor:
+    """``(*B, J)``: the servo joints' entries of the robots' joint velocities ``v_robot
+    (*B, Nj)`` (robots in scene order), in the order of the contact problem's columns after
+    the dynamic bodies' twists."""
+    columns: list[int] = []
+    offset = 0
+    for member in scene.robots:
+        columns.extend(offset + joint for joint in member.servo_joints)
+        offset += member.dof
+    return v_robot.index_select(-1, torch.tensor(columns, dtype=torch.long, device=v_robot.device))
 
 
 def check_control(
@@ -1255,6 +1321,8 @@ def check_control(
         "base_twist": (control.base_twist, (R, 6), False),
         "q_kinematic": (control.q_kinematic, (Nk, 7), Nk > 0),
         "v_kinematic": (control.v_kinematic, (Nk, 6), False),
+        "joint_command": (control.joint_command, (Nj,), scene.num_servo_joints > 0),
+        "v_robot_next": (control.v_robot_next, (Nj,), False),
     }
     out: dict[str, Tensor | None] = {}
     for name, (value, event, required) in fields.items():
@@ -1298,4 +1366,6 @@ def check_control(
         base_twist=out["base_twist"],
         q_kinematic=q_kinematic,
         v_kinematic=out["v_kinematic"],
+        joint_command=out["joint_command"] if scene.num_servo_joints else None,
+        v_robot_next=out["v_robot_next"],
     )
