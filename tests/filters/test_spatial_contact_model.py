@@ -599,11 +599,9 @@ def test_bad_fields_name_the_field(change: dict, name: str) -> None:
         SpatialContactModel(**fields)
 
 
-def test_a_servo_hand_is_stepped_with_the_box() -> None:
-    """Finger 1 of a servoed BarrettHand (PD towards a closed target, torque limited) closing
-    on the tilted box held in the air: the model steps the finger's joint with the box from
-    its measured state under the command, so its step under the simulator's own (Lemke) mode
-    is the simulator's step, and its Jacobian matches finite differences of that step."""
+def servo_hand_scene() -> Scene:
+    """The box on the table under a BarrettHand at 0.224 m whose joints are servoed (PD with
+    the experiment's gains and torque limits, gravity compensated)."""
     base = torch.tensor([0.0, 0.0, 0.224, *HAND_DOWN], dtype=DT)
     member = RobotMember(
         "hand",
@@ -617,7 +615,15 @@ def test_a_servo_hand_is_stepped_with_the_box() -> None:
     )
     box = Body("box", Box(HALF), mass=0.3)
     table = Body("table", HalfSpace.ground(), kind="static")
-    scene = Scene(bodies=(table, box), robots=(member,), friction=0.5, friction_directions=4, h=H)
+    return Scene(bodies=(table, box), robots=(member,), friction=0.5, friction_directions=4, h=H)
+
+
+def test_a_servo_hand_is_stepped_with_the_box() -> None:
+    """Finger 1 of a servoed BarrettHand (PD towards a closed target, torque limited) closing
+    on the tilted box held in the air: the model steps the finger's joint with the box from
+    its measured state under the command, so its step under the simulator's own (Lemke) mode
+    is the simulator's step, and its Jacobian matches finite differences of that step."""
+    scene = servo_hand_scene()
     _, x, q_robot, v_robot, _, _ = finger_on_a_tilted_box()
     command = torch.tensor([0.0, 2.2, 0.0, 0.0], dtype=DT)
     simulator = Simulator(scene)
@@ -636,6 +642,89 @@ def test_a_servo_hand_is_stepped_with_the_box() -> None:
     assert_jacobian_matches(model, x, control)
     with pytest.raises(ValueError, match=r"control\.joint_command"):
         model.step(x, mode=torch.tensor(0), control=RobotControl(q_robot=q_robot, v_robot=v_robot))
+
+
+def test_measured_joint_velocities_weigh_the_modes() -> None:
+    """Proprioception: finger 1 closes on the box and is slowed by it (the simulator's Lemke
+    step gives its measured velocity at the end of the step). The mode with the finger's
+    contact predicts exactly that velocity (log-weight 0); the mode without predicts the
+    finger's free motion, the simulator's step with the box out of reach, so its log-weight
+    is -|v_measured - v_free|² / (2σ²). The gate is off and no gap closed (the steps are
+    those of step()): only the evidence weighs."""
+    scene = servo_hand_scene()
+    _, x, q_robot, v_robot, _, _ = finger_on_a_tilted_box()
+    command = torch.tensor([0.0, 2.2, 0.0, 0.0], dtype=DT)
+    simulator = Simulator(scene)
+
+    def end_velocity(box: Tensor) -> tuple[Tensor, Tensor]:
+        start = simulator.initial_state(
+            q=box[None, None, :7],
+            v=box[None, None, 7:],
+            q_robot=q_robot[None],
+            v_robot=v_robot[None],
+        )
+        result = simulator.step(start, joint_command=command[None])
+        assert result.state.v_robot is not None
+        return result.state.v_robot[0], result.mode[0]
+
+    measured, touching = end_velocity(x)
+    away = x.clone()
+    away[2] = 0.5  # out of the fingers' reach
+    free, _ = end_velocity(away)
+    assert float((measured - free).abs().max()) > 1e-3  # the box slows the finger
+    sigma = 0.05
+    modes = torch.stack([touching, torch.zeros_like(touching)])
+    model = model_of(
+        scene, modes, joint_velocity_sigma=sigma, inconsistency_penalty=0.0, consistency_gap=0.0
+    )
+    belief = RBPF(model, 2).init(Gaussian(x, 1e-10 * torch.eye(12, dtype=DT)))
+    control = RobotControl(
+        q_robot=q_robot, v_robot=v_robot, joint_command=command, v_robot_next=measured
+    )
+    weights = model.mode_dynamics(belief, control).mode_log_weight
+    assert weights is not None
+    expected = -0.5 * float(((measured - free) / sigma).pow(2).sum())
+    assert float(weights[0]) == pytest.approx(0.0, abs=1e-9)
+    assert float(weights[1]) == pytest.approx(expected, rel=1e-9)
+
+
+def test_projection_moves_the_box_with_a_servoed_finger_it_sticks_to() -> None:
+    """A particle whose mode has the box stick to finger 1's outer link, which closes at
+    0.5 rad/s (a servo joint: its motion is a column of the contact rows, not a known velocity
+    term): the projection's twist makes the box's contact point move with the finger's, whose
+    velocity is the finite difference of the link's forward kinematics (central, ε = 1e-6
+    rad: error ~ε² |p̈| ≈ 1e-12 m/s, far below the pseudo-measurement's softness, std
+    s = 1e-6 m/s against a prior std of 0.1 m/s)."""
+    scene = servo_hand_scene()
+    _, x, q_robot, v_robot, modes, outer = finger_on_a_tilted_box()
+    model = model_of(scene, modes[:1])
+    belief = RBPF(model, 1).init(Gaussian(x, 0.01 * torch.eye(12, dtype=DT)))
+    control = RobotControl(q_robot=q_robot, v_robot=v_robot, joint_command=torch.zeros(4, dtype=DT))
+    projected = project_out_of_contact(
+        belief, scene, gap_sigma=1e-6 * scene.h, control=control, mode_table=modes[:1]
+    )
+    twist = projected.gaussians.mean[0, 7:]
+    # The contact point and the link's motion, independently of the contact problem.
+    state_ = Simulator(scene).initial_state(
+        q=x[None, None, :7], v=x[None, None, 7:], q_robot=q_robot[None]
+    )
+    _, geometry = contact_problem(scene, state_, joint_command=torch.zeros(1, 4, dtype=DT))
+    point = geometry.points[0, outer]
+    robot = scene.robots[0].robot
+    base = torch.eye(4, dtype=DT)
+    base[:3, :3] = quat_to_matrix(torch.tensor(HAND_DOWN, dtype=DT))
+    base[:3, 3] = torch.tensor([0.0, 0.0, 0.224], dtype=DT)
+
+    def link(q: Tensor) -> Tensor:
+        return base @ robot.forward_kinematics(q, "bhand_f1_outer")
+
+    held = torch.linalg.solve(link(q_robot), torch.cat([point, torch.ones(1, dtype=DT)]))
+    eps = 1e-6
+    finger = (link(q_robot + eps * v_robot) @ held - link(q_robot - eps * v_robot) @ held)[:3]
+    finger = finger / (2 * eps)
+    box = twist[:3] + torch.linalg.cross(twist[3:], point - x[:3])
+    torch.testing.assert_close(box, finger, rtol=0.0, atol=1e-6)
+    assert float(finger.norm()) > 0.01  # the finger does move
 
 
 def test_bad_step_inputs_name_the_argument() -> None:
