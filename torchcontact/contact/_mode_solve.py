@@ -170,9 +170,10 @@ def solve_mode_unchecked(
         Jt_second = _direction_rows(Jt, second)
         G_normal = Jn + (0.5 * slide_mu).unsqueeze(-1) * (Jt_first + Jt_second)
         on_face_row = face.unsqueeze(-1) & (torch.arange(r, device=problem.device) == 0)
-        tangent_rows = torch.where(
-            on_face_row.unsqueeze(-1), (Jt_first - Jt_second).unsqueeze(-2), tangent_rows
-        )
+        # Row 0 chosen on the (K, n) rows, then joined to the others: a choice broadcast over
+        # the strided (K, r, n) slice of Jt cost several times more.
+        face_row = torch.where(face.unsqueeze(-1), Jt_first - Jt_second, Jt[..., 0, :])
+        tangent_rows = torch.cat([face_row.unsqueeze(-2), Jt[..., 1:r, :]], dim=-2)
         bt_pair = problem.b_tangent.gather(-1, torch.stack([first, second], dim=-1))
         face_target = (bt_pair[..., 1] - bt_pair[..., 0]).unsqueeze(-1)
         tangent_target = torch.where(on_face_row, face_target, tangent_target)

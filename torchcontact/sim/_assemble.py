@@ -385,7 +385,7 @@ def dynamic_rows(
         blocks.append(block)
     if robots is not None:
         blocks.extend(_robot_rows(layout, robots, points, directions, slots))
-    return torch.cat(blocks, dim=-1)
+    return blocks[0] if len(blocks) == 1 else torch.cat(blocks, dim=-1)
 
 
 def _robot_rows(
