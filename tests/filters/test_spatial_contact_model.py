@@ -647,10 +647,11 @@ def test_a_servo_hand_is_stepped_with_the_box() -> None:
 def test_measured_joint_velocities_weigh_the_modes() -> None:
     """Proprioception: finger 1 closes on the box and is slowed by it (the simulator's Lemke
     step gives its measured velocity at the end of the step). The mode with the finger's
-    contact predicts exactly that velocity (log-weight 0); the mode without predicts the
-    finger's free motion, the simulator's step with the box out of reach, so its log-weight
-    is -|v_measured - v_free|² / (2σ²). The gate is off and no gap closed (the steps are
-    those of step()): only the evidence weighs."""
+    contact predicts exactly that velocity; the mode without predicts the finger's free
+    motion, the simulator's step with the box out of reach. With a belief of negligible
+    covariance each child's measurement likelihood is N(v_measured; v_k, σ² I), so the two
+    modes' log-weights differ by -|v_measured - v_free|² / (2σ²). The gate is off and no gap
+    closed (the steps are those of step())."""
     scene = servo_hand_scene()
     _, x, q_robot, v_robot, _, _ = finger_on_a_tilted_box()
     command = torch.tensor([0.0, 2.2, 0.0, 0.0], dtype=DT)
@@ -677,15 +678,21 @@ def test_measured_joint_velocities_weigh_the_modes() -> None:
     model = model_of(
         scene, modes, joint_velocity_sigma=sigma, inconsistency_penalty=0.0, consistency_gap=0.0
     )
-    belief = RBPF(model, 2).init(Gaussian(x, 1e-10 * torch.eye(12, dtype=DT)))
+    belief = RBPF(model, 2).init(Gaussian(x, 1e-16 * torch.eye(12, dtype=DT)))
     control = RobotControl(
         q_robot=q_robot, v_robot=v_robot, joint_command=command, v_robot_next=measured
     )
-    weights = model.mode_dynamics(belief, control).mode_log_weight
+    dynamics = model.mode_dynamics(belief, control)
+    weights = dynamics.particle_log_weight
     assert weights is not None
     expected = -0.5 * float(((measured - free) / sigma).pow(2).sum())
-    assert float(weights[0]) == pytest.approx(0.0, abs=1e-9)
-    assert float(weights[1]) == pytest.approx(expected, rel=1e-9)
+    normalizer = -0.5 * 4 * math.log(2 * math.pi * sigma**2)
+    torch.testing.assert_close(
+        weights[:, 0], torch.full((2,), normalizer, dtype=DT), rtol=0.0, atol=1e-6
+    )
+    torch.testing.assert_close(
+        weights[:, 1] - weights[:, 0], torch.full((2,), expected, dtype=DT), rtol=1e-6, atol=0.0
+    )
 
 
 def test_projection_moves_the_box_with_a_servoed_finger_it_sticks_to() -> None:

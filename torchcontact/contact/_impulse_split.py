@@ -22,7 +22,6 @@ import dataclasses
 
 import numpy as np
 import torch
-from scipy.optimize import linprog
 
 from torchcontact._checks import check_positive
 from torchcontact.contact._lcp import (
@@ -140,6 +139,9 @@ def _feasible_split(
     The unknowns are the impulses in units of ``scale``: ``K`` normal, then ``K·D``
     friction (slot-major).
     """
+    # imported here: the contact solvers load without scipy (tests/test_imports.py)
+    from scipy.optimize import linprog
+
     K, D, n = Jt.shape
     rows = np.concatenate([Jn, Jt.reshape(K * D, n)], axis=0)  # (K + K·D, n)
     target = (Jn.T @ pn + Jt.reshape(K * D, n).T @ pt.reshape(-1)) / scale

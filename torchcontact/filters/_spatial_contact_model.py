@@ -140,6 +140,8 @@ class _Linearization:
             mode's ``F``, ``f`` and ``c`` are the identity's).
         v_servo: ``(P, K, J)`` the servo joints' velocities at the end of each mode's step
             (``J = scene.num_servo_joints``, robots in scene order).
+        G: ``(P, K, J', 12)`` their Jacobians in the tangent at ``x̄`` (``J' = J`` where the
+            step conditions on the measured joint velocities, else 0; zero where not solved).
         touching: ``(P, K, S_a)`` bool, the acting slots each mode closes at ``x̄`` (its
             resolved slots).
         phi: ``(P, S_a)`` the acting slots' gaps at ``x̄``; Jn: ``(P, S_a, 6)`` their normal
@@ -156,6 +158,7 @@ class _Linearization:
     nearly: Tensor
     held: Tensor
     v_servo: Tensor
+    G: Tensor
     touching: Tensor
     phi: Tensor
     Jn: Tensor
@@ -313,12 +316,21 @@ class SpatialContactModel(ContactModelFields):
     tactile pads on the robot's links read binary contacts
     (:meth:`tactile_log_likelihood`, per mode, the RBPF step's ``extra_log_likelihood``).
 
-    Proprioception. With servo joints and a finite ``joint_velocity_sigma`` :math:`\sigma_j`,
-    the joints' measured velocities at the end of the step :math:`\dot q^+` (``RobotControl.
-    v_robot_next``) weigh the modes: mode :math:`k`'s log-weight gets
-    :math:`-\lVert \dot q^+ - \dot q^+_k(\bar x) \rVert^2 / (2 \sigma_j^2)`, with
-    :math:`\dot q^+_k(\bar x)` the servo joints' velocities of its step at the mean (a finger
-    that mode :math:`k` lets close freely while the box slowed it counts against the mode).
+    Proprioception. With servo joints, a finite ``joint_velocity_sigma`` :math:`\sigma_j` and
+    the joints' measured velocities at the end of the step :math:`u` (``RobotControl.
+    v_robot_next``), each child conditions on them. The servo joints' velocities are an
+    output of each mode's step, linearized at the mean with the step,
+    :math:`u = G_k \delta + g_k + e`, :math:`e \sim N(0, \sigma_j^2 I)` (:math:`G_k` exact,
+    from the same differentiated replicas as :math:`F_k`). Child :math:`(i, k)` is weighted by
+    its likelihood :math:`N(u;\ G_k \delta_i + g_k,\ G_k P_i G_k^\top + \sigma_j^2 I)`
+    (``particle_log_weight``: a finger that mode :math:`k` lets close freely while the box
+    slowed it counts against the mode), and its state at the start of the step is updated
+    with the gain :math:`K_k = \bar P G_k^\top (G_k \bar P G_k^\top + \sigma_j^2 I)^{-1}` of
+    the belief's mixture covariance :math:`\bar P` (one gain per mode, so that the update
+    folds into the step: :math:`F_k (I - K_k G_k)`, offset :math:`c_k + F_k K_k (u - g_k)`,
+    noise :math:`Q_k + F_k K_k \sigma_j^2 K_k^\top F_k^\top`, the Joseph form's covariance
+    of that estimate). The servoed fingers then yield where the filter's box is, and what the
+    measured fingers did still tells the filter where the box is.
 
     Attributes:
         scene: a spatial scene with exactly one dynamic body (the tracked object), static
@@ -360,9 +372,9 @@ class SpatialContactModel(ContactModelFields):
             checked in the class docstring).
         joint_velocity_sigma: the standard deviation (rad/s, m/s for prismatic joints) of
             the measured velocities of the robots' servo joints at the end of a step
-            (``RobotControl.v_robot_next``) about each mode's step at the linearization
-            point; finite, their Gaussian log-likelihood is added to each mode's log-weight
-            (see Proprioception in the class docstring); ``inf`` (the default) ignores them.
+            (``RobotControl.v_robot_next``) about each mode's linearized step; finite, each
+            child conditions on them (see Proprioception in the class docstring); ``inf``
+            (the default) ignores them.
         compiled: run the linearization's contact assembly through :func:`torch.compile`
             (one graph and its backward; see
             ``torchcontact._compiled``): the first step compiles (minutes on a CPU
@@ -569,24 +581,29 @@ class SpatialContactModel(ContactModelFields):
             converged=lin.converged,
             nearly=lin.nearly,
         )
-        if self.joint_velocity_sigma != math.inf and ctrl.v_robot_next is not None:
-            evidence = self._proprioception(ctrl.v_robot_next, lin)
-            # where the mode is not solved its velocities mean nothing (and it is ruled out)
-            evidence = torch.where(lin.converged & evidence.isfinite(), evidence, 0.0)
-            log_weight = log_weight + evidence.to(dtype)
         log_weight = log_weight.masked_fill(lin.held, 0.0)
         noise = self._noise
+        F, c, Q = lin.F, lin.c, noise["Q"].to(torch.float64).expand(flat.shape[0], K, -1, -1)
         particle_log_weight = None
         if self.particle_penalty > 0:
             violated = self._contradicted(belief.gaussians.mean, flat, lin)  # (P, N, K)
             particle_log_weight = torch.zeros(violated.shape, dtype=dtype, device=self.device)
-            particle_log_weight = particle_log_weight.masked_fill(
-                violated, -self.particle_penalty
-            ).reshape(*batch, *violated.shape[1:])
+            particle_log_weight = particle_log_weight.masked_fill(violated, -self.particle_penalty)
+        if self._conditions_on_joints(ctrl):
+            assert ctrl.v_robot_next is not None
+            F, c, Q, evidence = self._joint_conditioning(belief, flat, ctrl.v_robot_next, lin, Q)
+            evidence = evidence.to(dtype)
+            particle_log_weight = (
+                evidence if particle_log_weight is None else particle_log_weight + evidence
+            )
+        if particle_log_weight is not None:
+            particle_log_weight = particle_log_weight.reshape(
+                *batch, *particle_log_weight.shape[1:]
+            )
         return ModeDynamics(
-            F=lin.F.to(dtype).reshape(*batch, K, TANGENT_DIM, TANGENT_DIM),
-            c=lin.c.to(dtype).reshape(*batch, K, TANGENT_DIM),
-            Q=noise["Q"],
+            F=F.to(dtype).reshape(*batch, K, TANGENT_DIM, TANGENT_DIM),
+            c=c.to(dtype).reshape(*batch, K, TANGENT_DIM),
+            Q=Q.to(dtype).reshape(*batch, K, TANGENT_DIM, TANGENT_DIM),
             H=noise["H"],
             d=noise["d"],
             R=noise["R"],
@@ -748,8 +765,10 @@ class SpatialContactModel(ContactModelFields):
         point, mode = converged.nonzero(as_tuple=True)  # (Q,), (Q,)
         F = torch.eye(D, dtype=x.dtype, device=x.device).repeat(P, K, 1, 1)
         c = x.new_zeros(P, K, D)
+        J = self.scene.num_servo_joints if self._conditions_on_joints(control) else 0
+        G = x.new_zeros(P, K, J, D)
         if point.numel() > 0:
-            F[point, mode], c[point, mode] = self._solved_jacobians(
+            F[point, mode], c[point, mode], G[point, mode] = self._solved_jacobians(
                 x, control, slots, (point, mode), problem, solution, modes, chart
             )
         # A mode whose derivative is singular at the point is not solved there.
@@ -779,19 +798,58 @@ class SpatialContactModel(ContactModelFields):
             nearly=nearly,
             held=stranded,
             v_servo=solution.v_next[..., 6:],
+            G=G,
             touching=modes >= 1,
             phi=at_x.phi[:, 0],
             Jn=at_x.Jn[:, 0, :, :6],  # the body's columns (servo joints after)
             candidate=at_x.slot_mask[:, 0],
         )
 
-    def _proprioception(self, v_robot_next: Tensor, lin: _Linearization) -> Tensor:
-        """``(P, K)``: the log-likelihood (up to a constant) of the servo joints' measured
-        velocities ``v_robot_next (P, Nj)`` (all actuated joints, robots in scene order) under
-        each mode's step (see :attr:`joint_velocity_sigma`)."""
-        measured = servo_velocities(self.scene, v_robot_next)[:, None]  # (P, 1, J)
-        error = (measured - lin.v_servo) / self.joint_velocity_sigma
-        return -0.5 * error.pow(2).sum(-1)
+    def _conditions_on_joints(self, control: _Control) -> bool:
+        """Whether the step conditions on the servo joints' measured velocities (see
+        Proprioception in the class docstring)."""
+        return (
+            self.joint_velocity_sigma != math.inf
+            and self.scene.num_servo_joints > 0
+            and control.v_robot_next is not None
+        )
+
+    def _joint_conditioning(
+        self, belief: RBPFBelief, x: Tensor, v_robot_next: Tensor, lin: _Linearization, Q: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """Every mode's step conditioned on the servo joints' measured velocities
+        ``v_robot_next (P, Nj)``: ``F (P, K, 12, 12)``, ``c (P, K, 12)``, ``Q (P, K, 12, 12)``
+        (from ``lin`` and ``Q``), and ``(P, N, K)`` each child's log-likelihood of the
+        measurement (see Proprioception in the class docstring); float64."""
+        P, J = x.shape[0], self.scene.num_servo_joints
+        G, g = lin.G, lin.v_servo  # (P, K, J, 12), (P, K, J)
+        R = (self.joint_velocity_sigma**2) * torch.eye(J, dtype=x.dtype, device=x.device)
+        cov = belief.cov().detach().reshape(P, 1, TANGENT_DIM, TANGENT_DIM).to(x.dtype)
+        S = G @ cov @ G.transpose(-1, -2) + R  # (P, K, J, J)
+        gain = torch.linalg.solve(S, G @ cov).transpose(-1, -2)  # (P, K, 12, J)
+        residual = servo_velocities(self.scene, v_robot_next)[:, None] - g  # (P, K, J)
+        eye = torch.eye(TANGENT_DIM, dtype=x.dtype, device=x.device)
+        solved = (lin.converged & ~lin.held)[..., None, None]
+        F = torch.where(solved, lin.F @ (eye - gain @ G), lin.F)
+        c = torch.where(
+            solved[..., 0], lin.c + (lin.F @ (gain @ residual[..., None]))[..., 0], lin.c
+        )
+        spread = lin.F @ gain
+        Q = torch.where(solved, Q + spread @ R @ spread.transpose(-1, -2), Q)
+        # each child's likelihood with its own mean and covariance (tangent at the mean)
+        means = belief.gaussians.mean.detach().reshape(P, -1, STATE_DIM).to(x.dtype)
+        offset = SE3.local(x[:, None].expand_as(means), means)  # (P, N, 12)
+        covs = belief.gaussians.cov.detach().reshape(P, -1, TANGENT_DIM, TANGENT_DIM)
+        G_n = G[:, None]  # (P, 1, K, J, 12)
+        S_n = G_n @ covs.to(x.dtype)[:, :, None] @ G_n.transpose(-1, -2) + R  # (P, N, K, J, J)
+        r = residual[:, None] - (G_n @ offset[:, :, None, :, None])[..., 0]  # (P, N, K, J)
+        chol = torch.linalg.cholesky(S_n)
+        white = torch.linalg.solve_triangular(chol, r[..., None], upper=False)[..., 0]
+        log_det = 2 * chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
+        evidence = -0.5 * (white.pow(2).sum(-1) + log_det + J * math.log(2 * math.pi))
+        # where the mode is not solved its velocities mean nothing (and it is ruled out)
+        evidence = torch.where((lin.converged & ~lin.held)[:, None], evidence, 0.0)
+        return F, c, Q, evidence
 
     def _plausible(self, x: Tensor, v_next: Tensor) -> Tensor:
         """``(P, K)`` bool: no point of the body changes its velocity by more than
@@ -831,18 +889,21 @@ class SpatialContactModel(ContactModelFields):
         solution: Solution,
         modes: Tensor,
         chart: Tensor,
-    ) -> tuple[Tensor, Tensor]:
+    ) -> tuple[Tensor, Tensor, Tensor]:
         """The Jacobians ``F (Q, 12, 12)`` and offsets ``c (Q, 12)`` of the ``pairs`` of
         :meth:`_linearize`, ``(Q,)`` point and ``(Q,)`` mode indices (non-empty), from its
         closed-gap ``problem`` and ``solution`` at ``x``, batch ``(P, K)``, its resolved
-        ``modes (P, K, S_a)`` and charts ``(P, K, 13)``.
+        ``modes (P, K, S_a)`` and charts ``(P, K, 13)``; and ``G (Q, J, 12)``, the Jacobians
+        of the servo joints' velocities at the end of the step (``J = 0`` unless
+        :meth:`_conditions_on_joints`).
 
-        One assembly: a batch of Q·12 points retract(x, δ), δ = 0 requiring grad, whose values
-        are the problems at x and whose derivatives along δ are taken by reverse-mode
+        One assembly: a batch of Q·(12 + J) points retract(x, δ), δ = 0 requiring grad, whose
+        values are the problems at x and whose derivatives along δ are taken by reverse-mode
         differentiation (faster here than forward mode): replica (q, i) yields row i of pair
-        q's Jacobian.
+        q's Jacobian, replica (q, 12 + j) row j of its joint velocities' Jacobian.
         """
         D, Q = TANGENT_DIM, pairs[0].numel()
+        J = self.scene.num_servo_joints if self._conditions_on_joints(control) else 0
         if self.compiled:
             # Compiled with static shapes, each new number of pairs would compile anew (about
             # a minute on a CPU): the pairs are padded (repeating the first) to the next power
@@ -861,7 +922,7 @@ class SpatialContactModel(ContactModelFields):
             _replica_problems, compiled=self.compiled, cpp_wrapper=False, dynamic=False
         )
         with torch.enable_grad():
-            delta = x.new_zeros(point.numel(), 1, D, D).requires_grad_()
+            delta = x.new_zeros(point.numel(), 1, D + J, D).requires_grad_()
             moved, fields = assemble(
                 self.scene,
                 x.index_select(0, point),
@@ -879,7 +940,7 @@ class SpatialContactModel(ContactModelFields):
             # Eager: compiled, its backward through the Tikhonov iterations' LU solves runs as
             # triangular solves on every replica's full system, slower than eager with many
             # modes (BarrettHand, K = 16: 133 ms per backward against ~40 ms eager).
-            local = _tangent_steps(
+            local, joints = _tangent_steps(
                 self,
                 moved,
                 fields,
@@ -889,8 +950,11 @@ class SpatialContactModel(ContactModelFields):
                 solution.pn[pairs][:, None],
                 solution.pt[pairs][:, None],
             )
-            (F,) = torch.autograd.grad(local.diagonal(dim1=-2, dim2=-1).sum(), delta)
-        return F[:Q, 0], local.detach()[:Q, 0, 0]
+            rows = local[:, :, :D].diagonal(dim1=-2, dim2=-1).sum()
+            if J:
+                rows = rows + joints[:, :, D:].diagonal(dim1=-2, dim2=-1).sum()
+            (grad,) = torch.autograd.grad(rows, delta)
+        return grad[:Q, 0, :D], local.detach()[:Q, 0, 0], grad[:Q, 0, D:]
 
     def _closed_gaps(self, problem: ContactProblem, modes: Tensor) -> ContactProblem:
         """The problem of the consistency check: the gaps of the mode's contacts closed up to
@@ -1222,15 +1286,16 @@ def _tangent_steps(
     chart: Tensor,
     pn: Tensor,
     pt: Tensor,
-) -> Tensor:
-    """``local(chart, f_k(retract(x, δ)))`` ``(P, K, 12, 12)``: every mode's step from the
-    replicas, in the tangent at the chart, the mode solves warm-started at the converged
-    impulses at ``x`` (see the class docstring): the second differentiated part of
+) -> tuple[Tensor, Tensor]:
+    """``local(chart, f_k(retract(x, δ)))`` ``(P, K, R, 12)``: every mode's step from the
+    ``R`` replicas, in the tangent at the chart, the mode solves warm-started at the
+    converged impulses at ``x`` (see the class docstring), and ``(P, K, R, J)`` the servo
+    joints' velocities at the end of those steps: the second differentiated part of
     ``SpatialContactModel._solved_jacobians`` (eager in both modes).
 
     Args:
         model: the model (its scene).
-        moved: ``(P, K, 12, 13)`` the replicas' points.
+        moved: ``(P, K, R, 13)`` the replicas' points.
         fields: their problems' fields (:func:`_replica_problems`).
         closed_phi: ``(P, K, S_a)`` the gaps at ``x`` with the mode's contacts closed (the
             replicas' gaps are shifted by the closing at ``x``, held: no derivative).
@@ -1247,8 +1312,8 @@ def _tangent_steps(
         modes.unsqueeze(2).expand(P, K, D, -1),
         initial_impulses=start,
     ).v_next
-    stepped = model._advance(moved, v_next)  # (P, K, 12, 13)
-    return SE3.local(chart.unsqueeze(2).expand_as(stepped), stepped)
+    stepped = model._advance(moved, v_next)  # (P, K, R, 13)
+    return SE3.local(chart.unsqueeze(2).expand_as(stepped), stepped), v_next[..., 6:]
 
 
 def _check_state(x: object) -> None:
