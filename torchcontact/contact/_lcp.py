@@ -475,16 +475,8 @@ def mode_conditions(
     velocities (a separated slot does not penetrate; an active slot's gap rate is zero; a
     sticking slot does not slip; a sliding slot slips against its friction) and those on
     the impulses (non-negative; none at a separated or padding slot; friction inside the cone
-    when sticking, on its boundary along the slot's directions when sliding).
-
-    Args:
-        problem: the contact problem, batch ``*B``.
-        v_next: ``(*B, n)`` end-of-step velocity.
-        pn: ``(*B, K)`` normal impulses.
-        pt: ``(*B, K, D)`` friction impulses.
-        mode: ``(*B, K)`` long contact modes (broadcastable).
-        atol: relative tolerance.
-        v_free: ``(*B, n)`` the contact-free velocity if the caller has it (else computed).
+    when sticking, on its boundary along the slot's directions when sliding). The arguments
+    are those of :func:`consistent_with_mode`.
 
     Returns:
         ``velocity_ok, impulse_ok``: ``(*B, K)`` bool each (``True`` at padding slots'
