@@ -71,8 +71,8 @@ class RobotControl:
             kinematic joints' velocities: :meth:`~torchcontact.sim.Simulator.step`'s
             ``joint_command``), required where the scene has servo joints; None otherwise.
         v_robot_next: ``(*B, Nj)`` the joints' measured velocities at the end of the step,
-            or None: with servo joints, evidence for the modes (see
-            :attr:`SpatialContactModel.joint_velocity_sigma`).
+            or None: with servo joints, a measurement that each particle's child conditions
+            on (see :attr:`SpatialContactModel.joint_velocity_sigma`).
     """
 
     q_robot: Tensor
