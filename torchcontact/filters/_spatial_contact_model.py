@@ -848,7 +848,7 @@ class SpatialContactModel(ContactModelFields):
         log_det = 2 * chol.diagonal(dim1=-2, dim2=-1).log().sum(-1)
         evidence = -0.5 * (white.pow(2).sum(-1) + log_det + J * math.log(2 * math.pi))
         # where the mode is not solved its velocities mean nothing (and it is ruled out)
-        evidence = torch.where((lin.converged & ~lin.held)[:, None], evidence, 0.0)
+        evidence = torch.where(solved[..., 0, 0][:, None], evidence, 0.0)
         return F, c, Q, evidence
 
     def _plausible(self, x: Tensor, v_next: Tensor) -> Tensor:
@@ -1361,12 +1361,8 @@ def servo_velocities(scene: Scene, v_robot: Tensor) -> Tensor:
     """``(*B, J)``: the servo joints' entries of the robots' joint velocities ``v_robot
     (*B, Nj)`` (robots in scene order), in the order of the contact problem's columns after
     the dynamic bodies' twists."""
-    columns: list[int] = []
-    offset = 0
-    for member in scene.robots:
-        columns.extend(offset + joint for joint in member.servo_joints)
-        offset += member.dof
-    return v_robot.index_select(-1, torch.tensor(columns, dtype=torch.long, device=v_robot.device))
+    columns = torch.tensor(scene.servo_columns, dtype=torch.long, device=v_robot.device)
+    return v_robot.index_select(-1, columns)
 
 
 def check_control(

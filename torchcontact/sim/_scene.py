@@ -336,6 +336,18 @@ class Scene:
         return sum(len(robot.servo_joints) for robot in self.robots)
 
     @cached_property
+    def servo_columns(self) -> tuple[int, ...]:
+        """Where the servo joints sit among every robot's actuated joints (``q_robot``'s
+        entries), in the order of the problem's generalized coordinates after the dynamic
+        bodies' twists."""
+        columns: list[int] = []
+        offset = 0
+        for robot in self.robots:
+            columns.extend(offset + joint for joint in robot.servo_joints)
+            offset += robot.dof
+        return tuple(columns)
+
+    @cached_property
     def robot_slot_groups(self) -> tuple[RobotSlotGroup, ...]:
         """The slot groups of every robot collision primitive against every dynamic body."""
         groups: list[RobotSlotGroup] = []

@@ -404,18 +404,13 @@ class Simulator:
         if not self.scene.robots:
             assert state.v_robot is not None
             return state.q_robot, state.v_robot, state.robot_base
-        h, columns, start, servo = self.scene.h, [], 0, 0
-        zero = state.q_robot.new_zeros(state.batch_shape)
-        for member in self.scene.robots:
-            servo_joints = member.servo_joints
-            for joint in range(member.dof):
-                if joint in servo_joints:
-                    columns.append(servo_velocity[..., servo])
-                    servo += 1
-                else:
-                    columns.append(zero if joint_command is None else joint_command[..., start])
-                start += 1
-        v_robot = torch.stack(columns, dim=-1)
+        h = self.scene.h
+        # the driven joints as commanded (at rest without a command), the servo joints solved
+        driven = (
+            state.q_robot.new_zeros(state.q_robot.shape) if joint_command is None else joint_command
+        )
+        servo = torch.tensor(self.scene.servo_columns, dtype=torch.long, device=driven.device)
+        v_robot = driven.index_copy(-1, servo, servo_velocity)
         robot_base = state.robot_base
         if base_twist is not None:
             robot_base = integrate_poses(robot_base, base_twist, h)
